@@ -1,0 +1,133 @@
+"""`mapping-service`: the service's command line (composition root for each subcommand)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Sequence
+
+from clients.keyexpr import DEFAULT_PREFIX
+
+log = logging.getLogger("mapping-service")
+
+
+def _add_zenoh_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("zenoh")
+    g.add_argument(
+        "--zenoh-listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    g.add_argument(
+        "--zenoh-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint of a router or peer to connect to (repeatable)",
+    )
+    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file, passed through")
+    g.add_argument(
+        "--prefix",
+        default=DEFAULT_PREFIX,
+        help="key-expression prefix: scans on <prefix>/<robot>/scan (default: %(default)s)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="mapping-service",
+        description=(
+            "Map buildings from 2D laser scans. `serve` runs the networked service, `map` maps a "
+            "recording offline, `demo` runs the service with a simulated robot."
+        ),
+    )
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    p_map = sub.add_parser(
+        "map",
+        help="map a ROS 1/2 bag or a recording offline",
+        description="Map a ROS 1/2 bag or one of our recordings; write trajectory, map and report.",
+    )
+    p_map.add_argument("input", metavar="INPUT", help="ROS 1 bag, ROS 2 bag folder, or .mrec file")
+    p_map.add_argument("--out", required=True, metavar="DIR", help="output directory")
+    p_map.add_argument(
+        "--scan-topic", default="/scan", help="LaserScan topic (default: %(default)s)"
+    )
+    p_map.add_argument(
+        "--odom-topic", default="/odom", help="Odometry topic (default: %(default)s)"
+    )
+    p_map.add_argument("--no-odom", action="store_true", help="ignore odometry even if present")
+    p_map.add_argument(
+        "--resolution", type=float, default=0.05, metavar="M", help="map cell size (default: 0.05)"
+    )
+    p_map.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p_map.set_defaults(handler="service.offline:run_map")
+
+    p_serve = sub.add_parser(
+        "serve",
+        help="run the mapping service (Zenoh ingest + HTTP API)",
+        description="Subscribe to robot scans over Zenoh, map them per session, serve HTTP.",
+    )
+    p_serve.add_argument("--http-host", default="127.0.0.1", help="default: %(default)s")
+    p_serve.add_argument("--http-port", type=int, default=8000, help="default: %(default)s")
+    p_serve.add_argument(
+        "--data-dir", default="./data", help="state directory (default: %(default)s)"
+    )
+    p_serve.add_argument(
+        "--token",
+        default=None,
+        help="bearer token required for control operations (or env MAPPING_TOKEN)",
+    )
+    p_serve.add_argument(
+        "--allow-insecure-bind",
+        action="store_true",
+        help="allow a non-loopback HTTP bind without a token",
+    )
+    _add_zenoh_args(p_serve)
+    p_serve.set_defaults(handler="service.app.main:run_serve")
+
+    p_demo = sub.add_parser(
+        "demo",
+        help="service + simulated UTM-30LX robot; open the printed URL",
+        description=(
+            "Run the service with an embedded Zenoh session and a simulated robot whose emulated "
+            "UTM-30LX speaks SCIP 2.0 over a pty, start a session and print the live map URL."
+        ),
+    )
+    p_demo.add_argument("--http-host", default="127.0.0.1", help="default: %(default)s")
+    p_demo.add_argument("--http-port", type=int, default=8000, help="default: %(default)s")
+    p_demo.add_argument("--data-dir", default=None, help="state directory (default: a temp dir)")
+    p_demo.add_argument("--world-seed", type=int, default=1, help="simulated building (default: 1)")
+    p_demo.add_argument("--robots", type=int, default=1, help="number of simulated robots")
+    p_demo.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+    )
+    p_demo.set_defaults(handler="service.demo:run_demo")
+    return parser
+
+
+def configure_logging(verbosity: int) -> None:
+    level = logging.DEBUG if verbosity > 1 else logging.INFO if verbosity == 1 else logging.WARNING
+    logging.basicConfig(
+        level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s", stream=sys.stderr
+    )
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    configure_logging(args.verbose if args.command != "demo" else max(args.verbose, 1))
+    module_name, func_name = args.handler.split(":")
+    handler = getattr(importlib.import_module(module_name), func_name)
+    try:
+        return int(handler(args))
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,105 @@
+"""Core data types of the estimator: plain numpy, no transport, no IO."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import numpy.typing as npt
+
+from clients.wire import PoseFlag
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class Pose2D(NamedTuple):
+    """A planar pose: position in metres and heading in radians (counter-clockwise)."""
+
+    x_m: float
+    y_m: float
+    theta_rad: float
+
+    def compose(self, other: Pose2D) -> Pose2D:
+        """`self ∘ other`: `other` expressed in this pose's frame, mapped to the parent frame."""
+        c, s = math.cos(self.theta_rad), math.sin(self.theta_rad)
+        return Pose2D(
+            self.x_m + c * other.x_m - s * other.y_m,
+            self.y_m + s * other.x_m + c * other.y_m,
+            wrap_angle(self.theta_rad + other.theta_rad),
+        )
+
+    def inverse(self) -> Pose2D:
+        c, s = math.cos(self.theta_rad), math.sin(self.theta_rad)
+        return Pose2D(
+            -c * self.x_m - s * self.y_m,
+            s * self.x_m - c * self.y_m,
+            wrap_angle(-self.theta_rad),
+        )
+
+    def between(self, other: Pose2D) -> Pose2D:
+        """`inverse(self) ∘ other`: where `other` is, seen from this pose."""
+        return self.inverse().compose(other)
+
+
+def wrap_angle(theta_rad: float) -> float:
+    """Wrap to [-π, π)."""
+    return (theta_rad + math.pi) % (2.0 * math.pi) - math.pi
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LaserScan:
+    """One scan as the estimator sees it, in the laser frame (x forward, y left).
+
+    `ranges_m` is (N,) float64; NaN marks an invalid beam. `odom` is the robot's odometry pose
+    at the scan time if the robot has odometry.
+    """
+
+    stamp_ns: int
+    angle_min_rad: float
+    angle_increment_rad: float
+    ranges_m: FloatArray
+    range_min_m: float
+    range_max_m: float
+    odom: Pose2D | None = None
+
+    def angles_rad(self) -> FloatArray:
+        return self.angle_min_rad + self.angle_increment_rad * np.arange(
+            self.ranges_m.shape[0], dtype=np.float64
+        )
+
+    def valid_mask(self) -> npt.NDArray[np.bool_]:
+        r = self.ranges_m
+        with np.errstate(invalid="ignore"):
+            return np.isfinite(r) & (r > 0.0) & (r >= self.range_min_m) & (r < self.range_max_m)
+
+    def points_xy_m(self) -> FloatArray:
+        """(M, 2) float64 Cartesian points of the valid beams, laser frame."""
+        mask = self.valid_mask()
+        r = self.ranges_m[mask]
+        a = self.angles_rad()[mask]
+        return np.column_stack((r * np.cos(a), r * np.sin(a)))
+
+
+@dataclass(frozen=True, slots=True)
+class PoseEstimate:
+    """The estimator's answer for one scan: the pose in the map frame and how sure it is."""
+
+    stamp_ns: int
+    pose: Pose2D
+    quality: float  # [0, 1]
+    flags: PoseFlag = PoseFlag.NONE
+    is_keyframe: bool = False
+
+    @property
+    def x_m(self) -> float:
+        return self.pose.x_m
+
+    @property
+    def y_m(self) -> float:
+        return self.pose.y_m
+
+    @property
+    def theta_rad(self) -> float:
+        return self.pose.theta_rad
