@@ -5,13 +5,13 @@ from __future__ import annotations
 import re
 from typing import Final
 
-from clients.wire import check_robot_id
+from clients.wire import WireError, check_robot_id, is_valid_robot_id
 
 DEFAULT_PREFIX: Final = "robots"
 _PREFIX_CHUNK: Final = re.compile(r"^[A-Za-z0-9_.\-]+$")
 
 
-class InvalidPrefixError(ValueError):
+class InvalidPrefixError(WireError, ValueError):
     """A key-expression prefix with wildcards, empty chunks or unsafe characters."""
 
 
@@ -51,19 +51,25 @@ def alive_wildcard(prefix: str = DEFAULT_PREFIX, robots: str = "*") -> str:
 
 
 def robot_id_from_key(key: str, prefix: str = DEFAULT_PREFIX) -> str | None:
-    """The robot id in `<prefix>/<id>/<leaf>`, or None if the key does not have that shape."""
+    """The robot id in `<prefix>/<id>/<leaf>`, or None if the key does not have that shape
+    or the id is not a safe robot id."""
     head = check_prefix(prefix) + "/"
     if not key.startswith(head):
         return None
     parts = key[len(head) :].split("/")
-    if len(parts) != 2:
+    if len(parts) != 2 or not is_valid_robot_id(parts[0]):
         return None
     return parts[0]
 
 
 def _check_pattern(robots: str) -> str:
+    """One chunk of safe characters and `*`, as a valid Zenoh chunk.
+
+    Zenoh only accepts `*` as a whole chunk; inside a chunk the sub-chunk wildcard is `$*`,
+    so `warehouse-a-*` becomes `warehouse-a-$*`.
+    """
     if robots == "*":
         return robots
     if "/" in robots or "**" in robots or not re.fullmatch(r"[A-Za-z0-9_.\-*]+", robots):
         raise InvalidPrefixError(f"invalid robot pattern {robots!r}: one chunk, '*' allowed")
-    return robots
+    return robots.replace("*", "$*")

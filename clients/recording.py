@@ -6,7 +6,12 @@ Layout (all integers little-endian):
     record  = length:u32  crc32:u32  payload    payload = one msgpack wire message (scan or pose)
 
 A crash can leave a torn last record; readers stop there and `RecordingWriter` truncates it
-away when it reopens the file, so every complete record before it is kept.
+away when it reopens the file, so every complete record before it is kept. A record counts as
+torn when the file ends inside it, when its CRC fails and it ends exactly at the end of the
+file, or when everything from its start to the end of the file is zero bytes (the zero-filled
+tail some file systems leave after a power loss). Damage anywhere else (a CRC mismatch or an
+impossible length with more data after it) raises `RecordingError`: silently dropping the
+rest of a log would hide data loss.
 """
 
 from __future__ import annotations
@@ -22,7 +27,14 @@ from typing import BinaryIO, Final
 
 import msgpack
 
-from clients.wire import DEFAULT_MAX_PAYLOAD_BYTES, Pose, Scan, decode_pose, decode_scan
+from clients.wire import (
+    DEFAULT_MAX_PAYLOAD_BYTES,
+    DecodeError,
+    Pose,
+    Scan,
+    decode_pose,
+    decode_scan,
+)
 
 MAGIC: Final = b"MMREC01\n"
 _RECORD_HEADER: Final = struct.Struct("<II")
@@ -60,7 +72,10 @@ def is_recording(path: str | Path) -> bool:
 
 
 def iter_raw_records(path: str | Path) -> Iterator[RawRecord]:
-    """Yield every complete record; a torn or corrupt tail ends the iteration with a warning."""
+    """Yield every complete record; a torn tail ends the iteration with a warning.
+
+    Raises `RecordingError` for a bad magic or for damage before the last record.
+    """
     with open(path, "rb") as f:
         if f.read(len(MAGIC)) != MAGIC:
             raise RecordingError(f"{path}: not a recording (bad magic)")
@@ -77,30 +92,58 @@ def _records(f: BinaryIO, name: str) -> Iterator[RawRecord]:
             log.warning("%s: torn record header at byte %d; stopping there", name, offset)
             return
         length, crc = _RECORD_HEADER.unpack(head)
-        if length > MAX_RECORD_BYTES:
-            log.warning("%s: implausible record length %d at byte %d", name, length, offset)
-            return
+        if length == 0 or length > MAX_RECORD_BYTES:
+            # The writer never produces these. Past the end of the file it is a torn header.
+            if _bytes_left(f) < length or _rest_is_zero(f):
+                log.warning("%s: torn record at byte %d; stopping there", name, offset)
+                return
+            raise RecordingError(f"{name}: corrupt record at byte {offset} (length {length})")
         payload = f.read(length)
-        if len(payload) < length or zlib.crc32(payload) != crc:
-            log.warning("%s: torn or corrupt record at byte %d; stopping there", name, offset)
+        if len(payload) < length:
+            log.warning("%s: torn record at byte %d; stopping there", name, offset)
             return
+        if zlib.crc32(payload) != crc:
+            if _bytes_left(f) == 0 or (_is_zero(payload) and _rest_is_zero(f)):
+                log.warning("%s: torn last record at byte %d; stopping there", name, offset)
+                return
+            raise RecordingError(f"{name}: CRC mismatch in the record at byte {offset}")
         yield RawRecord(offset, payload)
         offset += _RECORD_HEADER.size + length
+
+
+def _bytes_left(f: BinaryIO) -> int:
+    return os.fstat(f.fileno()).st_size - f.tell()
+
+
+def _is_zero(data: bytes) -> bool:
+    return not data.strip(b"\0")
+
+
+def _rest_is_zero(f: BinaryIO) -> bool:
+    """True if every byte from the current position to the end of the file is zero."""
+    while chunk := f.read(1 << 16):
+        if not _is_zero(chunk):
+            return False
+    return True
 
 
 def read_messages(path: str | Path) -> Iterator[Scan | Pose]:
     """Decode every record as a `Scan` or `Pose`; undecodable records are skipped with a log."""
     for record in iter_raw_records(path):
         kind = record.kind
+        message: Scan | Pose
         try:
             if kind == "scan":
-                yield decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
+                message = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
             elif kind == "pose":
-                yield decode_pose(record.payload)
+                message = decode_pose(record.payload)
             else:
                 log.warning("%s: record at byte %d has unknown kind", path, record.offset)
-        except Exception as err:
+                continue
+        except DecodeError as err:
             log.warning("%s: record at byte %d does not decode: %s", path, record.offset, err)
+            continue
+        yield message
 
 
 def valid_length(path: str | Path) -> int:
@@ -109,6 +152,13 @@ def valid_length(path: str | Path) -> int:
     for record in iter_raw_records(path):
         end = record.offset + _RECORD_HEADER.size + len(record.payload)
     return end
+
+
+def _starts_torn_magic(path: Path) -> bool:
+    """True for a file shorter than the header whose bytes are a prefix of it."""
+    with open(path, "rb") as f:
+        head = f.read(len(MAGIC))
+    return len(head) < len(MAGIC) and MAGIC.startswith(head)
 
 
 class RecordingWriter:
@@ -123,6 +173,10 @@ class RecordingWriter:
         self._fsync_every = fsync_every
         self._since_sync = 0
         self.records_written = 0
+        if self.path.exists() and self.path.stat().st_size > 0 and _starts_torn_magic(self.path):
+            # Crashed while writing the header itself: nothing was recorded yet.
+            log.warning("%s: torn header; starting the recording again", self.path)
+            os.truncate(self.path, 0)
         if self.path.exists() and self.path.stat().st_size > 0:
             keep = valid_length(self.path)
             size = self.path.stat().st_size
@@ -138,6 +192,10 @@ class RecordingWriter:
 
     def append(self, payload: bytes) -> None:
         """Append one encoded wire message and push it to the OS before returning."""
+        if not 0 < len(payload) <= MAX_RECORD_BYTES:
+            raise RecordingError(
+                f"record payload of {len(payload)} bytes outside 1..{MAX_RECORD_BYTES}"
+            )
         self._f.write(_RECORD_HEADER.pack(len(payload), zlib.crc32(payload)) + payload)
         self._f.flush()
         self.records_written += 1

@@ -10,6 +10,7 @@ from __future__ import annotations
 import enum
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Final, Literal
 
@@ -41,6 +42,10 @@ class DecodeError(WireError):
         super().__init__(f"{reason}: {detail}")
         self.reason = reason
         self.detail = detail
+
+
+class EncodeError(WireError, ValueError):
+    """A message that violates the contract; encoding refuses what decoding would reject."""
 
 
 class InvalidRobotIdError(WireError, ValueError):
@@ -205,21 +210,25 @@ class Pose:
 
 
 def encode_scan(scan: Scan) -> bytes:
-    """Encode a scan; raises `WireError` if the scan itself violates the contract."""
+    """Encode a scan; raises `WireError` if the scan itself violates the contract.
+
+    Every payload this returns decodes with `decode_scan` (geometry, counts and types are
+    checked by the same code), so a bad scan fails at its source, not at every receiver.
+    """
     check_robot_id(scan.robot_id)
     if scan.ranges_encoding == "u16_mm":
         ranges_bytes = _ranges_to_u16_mm(scan.ranges_m).tobytes()
     elif scan.ranges_encoding == "f32_m":
         ranges_bytes = np.asarray(scan.ranges_m, dtype="<f4").tobytes()
     else:
-        raise WireError(f"unknown ranges encoding {scan.ranges_encoding!r}")
+        raise EncodeError(f"unknown ranges encoding {scan.ranges_encoding!r}")
     body: dict[str, Any] = {
         "v": scan.version,
         "type": "scan",
         "robot_id": scan.robot_id,
-        "seq": scan.seq,
-        "sensor_stamp_ns": scan.sensor_stamp_ns,
-        "host_stamp_ns": scan.host_stamp_ns,
+        "seq": int(scan.seq),  # int(): numpy integers are not msgpack-serialisable
+        "sensor_stamp_ns": int(scan.sensor_stamp_ns),
+        "host_stamp_ns": int(scan.host_stamp_ns),
         "angle_min_rad": float(scan.angle_min_rad),
         "angle_increment_rad": float(scan.angle_increment_rad),
         "beam_count": scan.beam_count,
@@ -230,35 +239,44 @@ def encode_scan(scan: Scan) -> bytes:
     }
     if scan.intensities is not None:
         if scan.intensities.shape != (scan.beam_count,):
-            raise WireError("intensities must have one value per beam")
+            raise EncodeError("intensities must have one value per beam")
         body["intensities"] = np.asarray(scan.intensities, dtype="<f4").tobytes()
     if scan.odom is not None:
         body["odom"] = {
             "x_m": float(scan.odom.x_m),
             "y_m": float(scan.odom.y_m),
             "theta_rad": float(scan.odom.theta_rad),
-            "stamp_ns": scan.odom.stamp_ns,
+            "stamp_ns": int(scan.odom.stamp_ns),
         }
+    _check_encodable(_scan_from_body, body)
     return _pack(body)
 
 
 def encode_pose(pose: Pose) -> bytes:
+    """Encode a pose; raises `WireError` if `decode_pose` would reject the result."""
     check_robot_id(pose.robot_id)
-    return _pack(
-        {
-            "v": pose.version,
-            "type": "pose",
-            "session_id": pose.session_id,
-            "robot_id": pose.robot_id,
-            "seq": pose.seq,
-            "stamp_ns": pose.stamp_ns,
-            "x_m": float(pose.x_m),
-            "y_m": float(pose.y_m),
-            "theta_rad": float(pose.theta_rad),
-            "quality": float(pose.quality),
-            "flags": int(pose.flags),
-        }
-    )
+    body: dict[str, Any] = {
+        "v": pose.version,
+        "type": "pose",
+        "session_id": pose.session_id,
+        "robot_id": pose.robot_id,
+        "seq": int(pose.seq),
+        "stamp_ns": int(pose.stamp_ns),
+        "x_m": float(pose.x_m),
+        "y_m": float(pose.y_m),
+        "theta_rad": float(pose.theta_rad),
+        "quality": float(pose.quality),
+        "flags": int(pose.flags),
+    }
+    _check_encodable(_pose_from_body, body)
+    return _pack(body)
+
+
+def _check_encodable(validate: Callable[[dict[str, Any]], object], body: dict[str, Any]) -> None:
+    try:
+        validate(body)
+    except DecodeError as err:
+        raise EncodeError(f"message would not decode: {err}") from None
 
 
 def _pack(body: dict[str, Any]) -> bytes:
@@ -278,7 +296,9 @@ def _ranges_to_u16_mm(ranges_m: npt.NDArray[np.float64]) -> npt.NDArray[np.uint1
 # Decoding
 
 
-def decode_scan(payload: bytes, *, max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES) -> Scan:
+def decode_scan(
+    payload: bytes | bytearray | memoryview, *, max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES
+) -> Scan:
     """Decode and validate a scan. Raises `DecodeError` on anything malformed."""
     body = _unpack(payload, max_payload_bytes, "scan")
     try:
@@ -289,7 +309,9 @@ def decode_scan(payload: bytes, *, max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_
         raise DecodeError("invalid", f"{type(err).__name__}: {err}") from err
 
 
-def decode_pose(payload: bytes, *, max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES) -> Pose:
+def decode_pose(
+    payload: bytes | bytearray | memoryview, *, max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES
+) -> Pose:
     """Decode and validate a pose. Raises `DecodeError` on anything malformed."""
     body = _unpack(payload, max_payload_bytes, "pose")
     try:
@@ -309,14 +331,14 @@ def _unpack(payload: object, max_payload_bytes: int, expected_type: str) -> dict
     if size == 0:
         raise DecodeError("empty", "payload is empty")
     try:
-        # Limits bound allocation before any validation; nesting depth is bounded by
-        # msgpack's own stack limit, which raises rather than recursing.
+        # Limits bound allocation before any validation (the size itself was checked above;
+        # `unpackb` takes no `max_buffer_size`). Nesting depth is bounded by msgpack's own
+        # stack limit, which raises `StackError` rather than recursing.
         body = msgpack.unpackb(
             payload,
             raw=False,
             strict_map_key=True,
             use_list=True,
-            max_buffer_size=max_payload_bytes,
             max_str_len=4096,
             max_bin_len=max_payload_bytes,
             max_array_len=1024,
@@ -424,7 +446,8 @@ def _scan_from_body(body: dict[str, Any]) -> Scan:
             raise DecodeError(
                 "beam_count_mismatch", f"{len(raw)} range bytes for {beam_count} f32 beams"
             )
-        ranges_m = np.frombuffer(raw, dtype="<f4").astype(np.float64)
+        with np.errstate(invalid="ignore"):  # signalling NaNs from the wire stay NaN
+            ranges_m = np.frombuffer(raw, dtype="<f4").astype(np.float64)
     else:
         raise DecodeError("bad_encoding", f"ranges_encoding {encoding!r} not in {RANGES_ENCODINGS}")
     intensities: npt.NDArray[np.float32] | None = None
@@ -491,6 +514,7 @@ __all__ = [
     "RANGES_ENCODINGS",
     "SCHEMA_VERSION",
     "DecodeError",
+    "EncodeError",
     "InvalidRobotIdError",
     "OdometryPose",
     "Pose",
