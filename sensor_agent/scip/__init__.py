@@ -1,0 +1,66 @@
+"""SCIP 2.0 (Hokuyo UTM-30LX and friends): a sans-IO codec, commands and typed errors."""
+
+from sensor_agent.scip import commands
+from sensor_agent.scip.codec import (
+    CommandOk,
+    Discarded,
+    Event,
+    ReplyError,
+    ScanData,
+    ScanStarted,
+    ScipCodec,
+    SensorParameters,
+    SensorState,
+    TimeReply,
+    TimestampUnwrapper,
+    VersionInfo,
+)
+from sensor_agent.scip.commands import Command, ScanRequest
+from sensor_agent.scip.encoding import checksum, decode_value, encode_value
+from sensor_agent.scip.errors import (
+    ChecksumError,
+    CommandError,
+    CommandRejectedError,
+    DeviceStateError,
+    HardwareError,
+    LaserOffError,
+    MalformedReplyError,
+    ParameterError,
+    ScipError,
+    StatusError,
+    UndefinedCommandError,
+    status_error,
+)
+
+__all__ = [
+    "ChecksumError",
+    "Command",
+    "CommandError",
+    "CommandOk",
+    "CommandRejectedError",
+    "DeviceStateError",
+    "Discarded",
+    "Event",
+    "HardwareError",
+    "LaserOffError",
+    "MalformedReplyError",
+    "ParameterError",
+    "ReplyError",
+    "ScanData",
+    "ScanRequest",
+    "ScanStarted",
+    "ScipCodec",
+    "ScipError",
+    "SensorParameters",
+    "SensorState",
+    "StatusError",
+    "TimeReply",
+    "TimestampUnwrapper",
+    "UndefinedCommandError",
+    "VersionInfo",
+    "checksum",
+    "commands",
+    "decode_value",
+    "encode_value",
+    "status_error",
+]
