@@ -1,5 +1,16 @@
 """What other programs use to talk to the mapping system: wire messages, HTTP client, CLI."""
 
+from clients.http import (
+    MapInfo,
+    MappingClient,
+    MappingConnectionError,
+    MappingError,
+    MappingProtocolError,
+    PoseView,
+    SavedMap,
+    Session,
+)
+from clients.subscriber import PoseSubscriber, SubscriberClosedError
 from clients.wire import (
     DecodeError,
     OdometryPose,
@@ -15,10 +26,20 @@ from clients.wire import (
 
 __all__ = [
     "DecodeError",
+    "MapInfo",
+    "MappingClient",
+    "MappingConnectionError",
+    "MappingError",
+    "MappingProtocolError",
     "OdometryPose",
     "Pose",
     "PoseFlag",
+    "PoseSubscriber",
+    "PoseView",
+    "SavedMap",
     "Scan",
+    "Session",
+    "SubscriberClosedError",
     "WireError",
     "decode_pose",
     "decode_scan",
