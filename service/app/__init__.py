@@ -1,0 +1,1 @@
+"""The networked mapping service: Zenoh ingest, sessions, durable store, pose fan-out, HTTP API."""

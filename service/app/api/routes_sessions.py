@@ -1,0 +1,270 @@
+"""`/sessions`: create, list, control, poses, trajectory, live map and pose stream."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, Path, Query, Response
+from fastapi.responses import PlainTextResponse
+from fastapi.sse import EventSourceResponse, ServerSentEvent
+
+from service.app import render
+from service.app.api.deps import Control, Runtime, Sessions, get_sessions
+from service.app.api.schemas import (
+    ID_PATTERN,
+    PoseView,
+    SavedMap,
+    Session,
+    SessionCreate,
+    SessionList,
+    Trajectory,
+    errors,
+)
+from service.app.errors import NotFoundError
+from service.app.sessions import MappingSession, SessionManager
+
+router = APIRouter(prefix="/sessions", tags=["sessions"])
+
+SessionId = Annotated[
+    str, Path(pattern=ID_PATTERN, max_length=64, description="a session id from POST /sessions")
+]
+NO_STORE = {"Cache-Control": "no-store"}
+
+
+def get_session(session_id: SessionId, sessions: Sessions) -> MappingSession:
+    return sessions.get(session_id)
+
+
+SessionDep = Annotated[MappingSession, Depends(get_session)]
+
+
+@router.post(
+    "",
+    status_code=201,
+    response_model=Session,
+    dependencies=Control,
+    summary="Start a mapping session",
+    description="Start mapping `robot_id`: its scans are recorded and mapped from now on. "
+    "One active session per robot (409 otherwise).",
+    responses=errors(401, 409, 413, 422),
+)
+def create_session(body: SessionCreate, sessions: Sessions) -> Session:
+    session = sessions.create(body.robot_id, body.resolution_m, body.use_odometry)
+    return Session.of(session.info())
+
+
+@router.get(
+    "",
+    response_model=SessionList,
+    summary="List sessions",
+    description="Every session of this service, active and stopped, oldest first.",
+)
+def list_sessions(sessions: Sessions) -> SessionList:
+    return SessionList(sessions=[Session.of(s.info()) for s in sessions.list()])
+
+
+@router.get(
+    "/{session_id}",
+    response_model=Session,
+    summary="Get a session",
+    description="State, counters and last pose of one session.",
+    responses=errors(404, 422),
+)
+def read_session(session: SessionDep) -> Session:
+    return Session.of(session.info())
+
+
+@router.delete(
+    "/{session_id}",
+    status_code=204,
+    response_class=Response,
+    response_model=None,
+    dependencies=Control,
+    summary="Delete a session",
+    description="Stop the session and delete its recording and map. Saved maps are kept.",
+    responses=errors(401, 404, 422),
+)
+def delete_session(session_id: SessionId, sessions: Sessions, runtime: Runtime) -> Response:
+    sessions.delete(session_id)
+    runtime.fanout.end_streams_threadsafe(session_id)
+    return Response(status_code=204)
+
+
+@router.post(
+    "/{session_id}/stop",
+    response_model=Session,
+    dependencies=Control,
+    summary="Stop a session",
+    description="Stop mapping; the map, trajectory and recording stay available. "
+    "The robot may then get a new session.",
+    responses=errors(401, 404, 422),
+)
+def stop_session(session_id: SessionId, sessions: Sessions) -> Session:
+    return Session.of(sessions.stop(session_id).info())
+
+
+@router.post(
+    "/{session_id}/reset",
+    response_model=Session,
+    dependencies=Control,
+    summary="Reset a session",
+    description="Forget the map and the trajectory; the next scan defines a new map frame.",
+    responses=errors(401, 404, 422),
+)
+def reset_session(session_id: SessionId, sessions: Sessions) -> Session:
+    return Session.of(sessions.reset(session_id).info())
+
+
+@router.post(
+    "/{session_id}/save",
+    status_code=201,
+    response_model=SavedMap,
+    dependencies=Control,
+    summary="Save the map",
+    description="Store a snapshot of the map (PNG, PGM + YAML) as the next version of map "
+    "`map_id` (= the session id); download it later from `/maps`.",
+    responses=errors(401, 404, 422),
+)
+def save_session(session_id: SessionId, sessions: Sessions) -> SavedMap:
+    return SavedMap.of(sessions.save(session_id))
+
+
+@router.get(
+    "/{session_id}/pose",
+    response_model=PoseView,
+    summary="Current pose",
+    description="The latest pose (map frame: metres, radians). 404 until the first pose.",
+    responses=errors(404, 422),
+)
+def read_pose(session: SessionDep) -> PoseView:
+    pose = session.last_pose
+    if pose is None:
+        raise NotFoundError(f"session {session.id} has no pose yet")
+    return PoseView.of(pose)
+
+
+@router.get(
+    "/{session_id}/trajectory",
+    response_model=Trajectory,
+    summary="Trajectory",
+    description="Every pose of the session in order, as JSON, or as TUM text "
+    "(`stamp x y z qx qy qz qw`, readable by evo) with `?format=tum`.",
+    responses={
+        200: {"content": {"text/plain": {"schema": {"type": "string"}}}},
+        **errors(404, 422),
+    },
+)
+def read_trajectory(
+    session: SessionDep,
+    format: Annotated[  # the query parameter's public name
+        Literal["json", "tum"], Query(description="json (default) or tum")
+    ] = "json",
+) -> Trajectory | Response:
+    poses = session.trajectory()
+    if format == "tum":
+        return PlainTextResponse(render.trajectory_tum(poses), headers=NO_STORE)
+    return Trajectory(session_id=session.id, poses=[PoseView.of(p) for p in poses])
+
+
+_PNG: dict[int | str, dict[str, Any]] = {
+    200: {"content": {"image/png": {}}, "description": "the map as PNG"}
+}
+
+
+@router.get(
+    "/{session_id}/map.png",
+    response_class=Response,
+    response_model=None,
+    summary="Map as PNG",
+    description="The occupancy map (white free, black occupied, grey unknown), optionally with "
+    "the trajectory and the robot drawn on it.",
+    responses={**_PNG, **errors(404, 422)},
+)
+def read_map_png(
+    session: SessionDep,
+    trajectory: Annotated[bool, Query(description="draw the trajectory")] = False,
+    robot: Annotated[bool, Query(description="draw the robot's last pose")] = False,
+) -> Response:
+    snapshot = session.map_snapshot() if trajectory or robot else session.map_image()
+    png = render.map_png(snapshot, trajectory=trajectory, robot=robot)
+    return Response(png, media_type="image/png", headers=NO_STORE)
+
+
+@router.get(
+    "/{session_id}/map.pgm",
+    response_class=Response,
+    response_model=None,
+    summary="Map as PGM (ROS map_server)",
+    description="The occupancy map as a binary PGM, to pair with `map.yaml`.",
+    responses={
+        200: {"content": {"image/x-portable-graymap": {}}, "description": "PGM"},
+        **errors(404, 422),
+    },
+)
+def read_map_pgm(session: SessionDep) -> Response:
+    pgm = render.map_pgm(session.map_image())
+    return Response(pgm, media_type="image/x-portable-graymap", headers=NO_STORE)
+
+
+@router.get(
+    "/{session_id}/map.yaml",
+    response_class=PlainTextResponse,
+    response_model=None,
+    summary="Map metadata (ROS map_server YAML)",
+    description="Resolution, origin [x, y, yaw] and thresholds; the image is `map.pgm`.",
+    responses={
+        200: {"content": {"application/yaml": {}}, "description": "YAML"},
+        **errors(404, 422),
+    },
+)
+def read_map_yaml(session: SessionDep) -> Response:
+    text = render.map_yaml(session.map_image())
+    return PlainTextResponse(text, media_type="application/yaml", headers=NO_STORE)
+
+
+@router.get(
+    "/{session_id}/pose/stream",
+    response_class=EventSourceResponse,
+    summary="Live poses (Server-Sent Events)",
+    description="`event: pose` with a `PoseView` JSON as `data` for every new pose, starting "
+    "with the current one. A slow reader loses the oldest poses (counted in /metrics), "
+    "never slows the service. Comment lines (`: ping`) keep idle connections open.",
+    responses={
+        200: {
+            "content": {
+                "text/event-stream": {
+                    "schema": {"type": "string"},
+                    "example": 'event: pose\ndata: {"session_id": "s-...", "x": 1.0}\n\n',
+                }
+            },
+            "description": "an endless event stream",
+        },
+        **errors(404, 422),
+    },
+)
+async def stream_poses(
+    session: Annotated[MappingSession, Depends(get_session)],
+    runtime: Runtime,
+) -> AsyncIterator[ServerSentEvent]:
+    fanout = runtime.fanout
+    stream = fanout.open_stream(session.id)
+    try:
+        sent: tuple[int, int] | None = None
+        last = session.last_pose  # after subscribing, so nothing falls in between
+        if last is not None:
+            sent = (last.seq, last.stamp_ns)
+            yield ServerSentEvent(event="pose", data=PoseView.of(last), id=str(last.seq))
+        while True:
+            pose = await stream.queue.get()
+            if pose is None:
+                return
+            if (pose.seq, pose.stamp_ns) == sent:
+                continue
+            sent = None
+            yield ServerSentEvent(event="pose", data=PoseView.of(pose), id=str(pose.seq))
+    finally:
+        fanout.close_stream(stream)
+
+
+__all__ = ["SessionManager", "get_sessions", "router"]

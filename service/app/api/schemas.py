@@ -1,0 +1,169 @@
+"""HTTP request and response models (the OpenAPI document), apart from internal types.
+
+Shapes follow docs/architecture.md ("HTTP resources"); the class names are the schema names
+fleet tools see, hence `Session`, `PoseView`, `SavedMap`.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from clients.wire import Pose, PoseFlag
+from service.app.sessions import SessionInfo
+from service.app.store import SavedMapMeta
+
+ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
+
+
+class SessionCreate(BaseModel):
+    """Start mapping a robot. Scans already arriving on `<prefix>/<robot_id>/scan` are used."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    robot_id: str = Field(pattern=ID_PATTERN, max_length=64, examples=["amr-07"])
+    resolution_m: float = Field(0.05, ge=0.01, le=1.0, description="map cell size in metres")
+    use_odometry: bool = Field(True, description="use the scans' odometry as motion prior")
+
+
+class PoseView(BaseModel):
+    """One pose in the session's map frame: metres, radians (counter-clockwise), REP-105."""
+
+    session_id: str
+    robot_id: str
+    sequence: int = Field(description="0-based index in the session's trajectory")
+    stamp: float = Field(description="seconds since the Unix epoch (the scan's host stamp)")
+    stamp_ns: int
+    x: float = Field(description="metres, map frame")
+    y: float = Field(description="metres, map frame")
+    theta: float = Field(description="radians, counter-clockwise, in [-π, π)")
+    quality: float = Field(ge=0.0, le=1.0, description="0 = no confidence, 1 = fully constrained")
+    flags: list[str] = Field(description="PoseFlag names, e.g. AMBIGUOUS_X")
+
+    @classmethod
+    def of(cls, pose: Pose) -> PoseView:
+        return cls(
+            session_id=pose.session_id,
+            robot_id=pose.robot_id,
+            sequence=pose.seq,
+            stamp=pose.stamp_ns / 1e9,
+            stamp_ns=pose.stamp_ns,
+            x=pose.x_m,
+            y=pose.y_m,
+            theta=pose.theta_rad,
+            quality=pose.quality,
+            flags=flag_names(pose.flags),
+        )
+
+
+def flag_names(flags: PoseFlag) -> list[str]:
+    return [f.name for f in PoseFlag if f.value and flags & f and f.name is not None]
+
+
+class Session(BaseModel):
+    id: str
+    robot_id: str
+    state: Literal["active", "stopped"]
+    created_ns: int
+    scans_accepted: int = Field(description="scans recorded into this session's current map")
+    poses: int = Field(description="length of the trajectory")
+    resolution_m: float
+    use_odometry: bool
+    last_pose: PoseView | None
+
+    @classmethod
+    def of(cls, info: SessionInfo) -> Session:
+        return cls(
+            id=info.id,
+            robot_id=info.robot_id,
+            state=info.state,
+            created_ns=info.created_ns,
+            scans_accepted=info.scans_accepted,
+            poses=info.poses,
+            resolution_m=info.resolution_m,
+            use_odometry=info.use_odometry,
+            last_pose=PoseView.of(info.last_pose) if info.last_pose is not None else None,
+        )
+
+
+class SessionList(BaseModel):
+    sessions: list[Session]
+
+
+class Trajectory(BaseModel):
+    session_id: str
+    poses: list[PoseView]
+
+
+class MapUrls(BaseModel):
+    png: str
+    pgm: str
+    yaml: str
+
+
+class SavedMap(BaseModel):
+    map_id: str
+    version: int = Field(ge=1)
+    session_id: str
+    robot_id: str
+    saved_ns: int
+    urls: MapUrls
+
+    @classmethod
+    def of(cls, meta: SavedMapMeta) -> SavedMap:
+        base = f"/maps/{meta.map_id}/{meta.version}"
+        return cls(
+            map_id=meta.map_id,
+            version=meta.version,
+            session_id=meta.session_id,
+            robot_id=meta.robot_id,
+            saved_ns=meta.saved_ns,
+            urls=MapUrls(png=f"{base}/map.png", pgm=f"{base}/map.pgm", yaml=f"{base}/map.yaml"),
+        )
+
+
+class SavedMapList(BaseModel):
+    maps: list[SavedMap]
+
+
+class RobotHealth(BaseModel):
+    robot_id: str
+    alive: bool = Field(description="the agent's liveliness token is present")
+    queue_depth: int
+    last_scan_ns: int = Field(description="host time of the last received scan, 0 = never")
+    session_id: str | None = Field(description="the robot's active session, if any")
+
+
+class ZenohHealth(BaseModel):
+    open: bool
+    zid: str | None = None
+    peers: int = 0
+    routers: int = 0
+
+
+class Health(BaseModel):
+    status: Literal["ok", "degraded"]
+    uptime_s: float
+    sessions_active: int
+    sessions_total: int
+    zenoh: ZenohHealth
+    robots: list[RobotHealth]
+
+
+class ErrorBody(BaseModel):
+    detail: str = Field(description="one-line reason")
+
+
+ERRORS = {
+    400: {"model": ErrorBody, "description": "invalid input"},
+    401: {"model": ErrorBody, "description": "missing or wrong bearer token"},
+    404: {"model": ErrorBody, "description": "no such resource"},
+    409: {"model": ErrorBody, "description": "conflicts with the current state"},
+    413: {"model": ErrorBody, "description": "request body too large"},
+    422: {"model": ErrorBody, "description": "request does not validate"},
+}
+
+
+def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
+    return {code: dict(ERRORS[code]) for code in codes}

@@ -1,0 +1,266 @@
+"""Scan ingest: the Zenoh callback, per-robot bounded queues, and one worker thread per robot.
+
+Why per-robot queues and not one `RingChannel`: a single ring shared by the fleet lets one
+chatty or hostile publisher evict every other robot's scans, and a ring drops silently. Here the
+Zenoh callback only reads the key, copies the payload and appends it to its robot's deque under
+a lock held for microseconds; when the deque is full the oldest scan is dropped and counted. The
+callback never decodes, never touches the disk and never calls Zenoh, so it cannot stall
+Zenoh's receive thread. Each robot's worker drains its queue in order (decode and validate,
+session lookup, record, estimate, publish), so robots do not wait for one another except for
+the GIL.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from clients.keyexpr import robot_id_from_key
+from clients.wire import DecodeError, Pose, decode_scan, is_valid_robot_id
+from service.app.errors import ServiceError
+from service.app.metrics import SCAN_SECONDS_BUCKETS, Labels, Metrics, labels
+from service.app.sessions import SessionManager
+from service.app.settings import IngestSettings
+
+log = logging.getLogger(__name__)
+
+_MAX_LOGGED_PAIRS = 4096
+
+SCANS_ACCEPTED = "mapping_scans_accepted_total"
+SCANS_REJECTED = "mapping_scans_rejected_total"
+SCANS_UNMAPPED = "mapping_scans_unmapped_total"
+SCANS_DROPPED = "mapping_scans_dropped_total"
+SCAN_SECONDS = "mapping_scan_processing_seconds"
+QUEUE_DEPTH = "mapping_ingest_queue_depth"
+ROBOTS_SEEN = "mapping_robots_seen"
+
+
+def declare_metrics(metrics: Metrics, depths: Callable[[], list[tuple[Labels, float]]]) -> None:
+    metrics.counter(SCANS_ACCEPTED, "Scans recorded and mapped, by robot.")
+    metrics.counter(SCANS_REJECTED, "Scans refused by validation, by reason.")
+    metrics.counter(SCANS_UNMAPPED, "Valid scans from robots without an active session.")
+    metrics.counter(
+        SCANS_DROPPED,
+        "Scans not processed: queue_full (oldest dropped), too_many_robots, store_error.",
+    )
+    metrics.histogram(
+        SCAN_SECONDS,
+        "Worker time per accepted scan: decode, record, estimate, map, publish.",
+        SCAN_SECONDS_BUCKETS,
+    )
+    metrics.gauge(QUEUE_DEPTH, "Scans waiting in each robot's ingest queue.", depths)
+
+
+@dataclass(eq=False)
+class _RobotQueue:
+    robot_id: str
+    depth: int
+    items: deque[bytes] = field(default_factory=deque)
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    wakeup: threading.Event = field(default_factory=threading.Event)
+    thread: threading.Thread | None = None
+    busy: bool = False
+    last_received_ns: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class RobotStatus:
+    robot_id: str
+    queue_depth: int
+    last_received_ns: int
+
+
+class Ingest:
+    """Routes scan payloads from Zenoh to sessions. `on_sample` is the Zenoh callback."""
+
+    def __init__(
+        self,
+        prefix: str,
+        sessions: SessionManager,
+        publish: Callable[[Pose], None],
+        metrics: Metrics,
+        settings: IngestSettings,
+    ) -> None:
+        self._prefix = prefix
+        self._sessions = sessions
+        self._publish = publish
+        self._metrics = metrics
+        self._settings = settings
+        self._queues: dict[str, _RobotQueue] = {}
+        self._queues_lock = threading.Lock()
+        self._closing = False
+        self.store_errors = 0
+        self._logged: set[tuple[str, str]] = set()
+        self._logged_lock = threading.Lock()
+        declare_metrics(metrics, self._depths)
+
+    # -- Zenoh side (must never block) -----------------------------------------------------
+
+    def on_sample(self, sample: Any) -> None:
+        """Zenoh subscriber callback: copy the payload into its robot's queue, nothing more."""
+        try:
+            if sample.kind != zenoh.SampleKind.PUT:
+                return
+            key = str(sample.key_expr)
+            if len(sample.payload) > self._settings.max_payload_bytes:
+                robot = robot_id_from_key(key, self._prefix) or "?"
+                self._reject("too_large", robot, f"{len(sample.payload)} bytes")
+                return
+            self.submit(key, sample.payload.to_bytes())
+        except Exception:  # a callback that raises only prints; keep our own log instead
+            log.exception("ingest callback failed")
+
+    def submit(self, key: str, payload: bytes) -> None:
+        """Queue one payload received on `key` (non-blocking; drops the oldest when full)."""
+        robot_id = robot_id_from_key(key, self._prefix)
+        if robot_id is None or not is_valid_robot_id(robot_id):
+            self._reject("bad_key", "?", key[:120])
+            return
+        queue = self._queue_for(robot_id)
+        if queue is None:
+            self._metrics.inc(SCANS_DROPPED, robot="", reason="too_many_robots")
+            self._log_once("too_many_robots", robot_id, "robot limit reached; dropping its scans")
+            return
+        dropped = False
+        with queue.lock:
+            if len(queue.items) >= queue.depth:
+                queue.items.popleft()
+                dropped = True
+            queue.items.append(payload)
+            queue.last_received_ns = time.time_ns()
+        queue.wakeup.set()
+        if dropped:
+            self._metrics.inc(SCANS_DROPPED, robot=robot_id, reason="queue_full")
+            self._log_once("queue_full", robot_id, "ingest queue full; dropping oldest scans")
+
+    def _queue_for(self, robot_id: str) -> _RobotQueue | None:
+        queue = self._queues.get(robot_id)  # dict reads are atomic; the lock is for creation
+        if queue is not None:
+            return queue
+        with self._queues_lock:
+            queue = self._queues.get(robot_id)
+            if queue is not None:
+                return queue
+            if self._closing or len(self._queues) >= self._settings.max_robots:
+                return None
+            queue = _RobotQueue(robot_id, self._settings.queue_depth)
+            queue.thread = threading.Thread(
+                target=self._run, args=(queue,), name=f"ingest-{robot_id}", daemon=True
+            )
+            self._queues[robot_id] = queue
+        queue.thread.start()
+        log.info("robot %s: first scan received, worker started", robot_id)
+        return queue
+
+    # -- worker side ---------------------------------------------------------------------------
+
+    def _run(self, queue: _RobotQueue) -> None:
+        while True:
+            queue.wakeup.wait()
+            queue.wakeup.clear()
+            while True:
+                with queue.lock:
+                    if not queue.items:
+                        queue.busy = False
+                        break
+                    payload = queue.items.popleft()
+                    queue.busy = True
+                try:
+                    self._handle(queue.robot_id, payload)
+                except Exception:  # a worker must never die: its robot would go unmapped
+                    log.exception("ingest worker of %s failed on a scan", queue.robot_id)
+            if self._closing:
+                return
+
+    def _handle(self, robot_id: str, payload: bytes) -> None:
+        t0 = time.perf_counter()
+        try:
+            scan = decode_scan(payload, max_payload_bytes=self._settings.max_payload_bytes)
+        except DecodeError as err:
+            self._reject(err.reason, robot_id, err.detail)
+            return
+        if scan.robot_id != robot_id:
+            self._reject("robot_id_mismatch", robot_id, f"payload says {scan.robot_id!r}")
+            return
+        session = self._sessions.active_for(robot_id)
+        try:
+            accepted, pose = session.ingest(payload, scan) if session is not None else (False, None)
+        except (OSError, ServiceError) as err:  # disk full, I/O error: not durable, not counted
+            self.store_errors += 1
+            self._metrics.inc(SCANS_DROPPED, robot=robot_id, reason="store_error")
+            self._log_once("store_error", robot_id, f"could not record the scan: {err}")
+            return
+        if not accepted:
+            self._metrics.inc(SCANS_UNMAPPED, robot=robot_id)
+            self._log_once(
+                "unmapped", robot_id, "scans arrive but no active session: not mapped", logging.INFO
+            )
+            return
+        self._metrics.inc(SCANS_ACCEPTED, robot=robot_id)
+        if pose is not None:
+            try:
+                self._publish(pose)
+            except Exception:
+                log.exception("publishing a pose of %s failed", robot_id)
+        self._metrics.observe(SCAN_SECONDS, time.perf_counter() - t0)
+
+    # -- bookkeeping -----------------------------------------------------------------------
+
+    def _reject(self, reason: str, robot_id: str, detail: str) -> None:
+        self._metrics.inc(SCANS_REJECTED, reason=reason)
+        self._log_once(reason, robot_id, f"rejected scan: {detail}")
+
+    def _log_once(
+        self, reason: str, robot_id: str, message: str, level: int = logging.WARNING
+    ) -> None:
+        """Log the first occurrence per (reason, robot); later ones are only counted."""
+        pair = (reason, robot_id)
+        with self._logged_lock:
+            if pair in self._logged or len(self._logged) > _MAX_LOGGED_PAIRS:
+                return
+            self._logged.add(pair)
+            if len(self._logged) > _MAX_LOGGED_PAIRS:
+                message += " (log limit reached: further new reasons/robots are only counted)"
+        log.log(level, "robot %s: %s [%s; further ones only counted]", robot_id, message, reason)
+
+    def _depths(self) -> list[tuple[Labels, float]]:
+        return [(labels(robot=s.robot_id), float(s.queue_depth)) for s in self.robots()]
+
+    def robots(self) -> list[RobotStatus]:
+        with self._queues_lock:
+            queues = list(self._queues.values())
+        return [
+            RobotStatus(q.robot_id, len(q.items), q.last_received_ns)
+            for q in sorted(queues, key=lambda q: q.robot_id)
+        ]
+
+    def pending(self) -> int:
+        """Scans queued or being processed (for orderly shutdown and tests)."""
+        with self._queues_lock:
+            queues = list(self._queues.values())
+        total = 0
+        for q in queues:
+            with q.lock:
+                total += len(q.items) + (1 if q.busy else 0)
+        return total
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Stop the workers after they drain what is already queued."""
+        with self._queues_lock:
+            self._closing = True
+            queues = list(self._queues.values())
+        deadline = time.monotonic() + timeout_s
+        for q in queues:
+            q.wakeup.set()
+        for q in queues:
+            if q.thread is not None:
+                q.thread.join(max(0.0, deadline - time.monotonic()))
+                if q.thread.is_alive():
+                    log.warning("ingest worker of %s did not stop in time", q.robot_id)

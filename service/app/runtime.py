@@ -1,0 +1,200 @@
+"""The service's long-lived objects and their start/stop order (the composition root's core).
+
+Start: lock the data directory, replay every session, open Zenoh, subscribe, start the syncer.
+Stop (reverse): unsubscribe (no new samples), let workers drain, fsync and close recordings,
+undeclare publishers, close Zenoh (an unclosed session with a callback subscriber hangs the
+interpreter at exit), unlock the data directory.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from types import TracebackType
+from typing import Any
+
+import zenoh
+
+from clients.keyexpr import alive_wildcard, robot_id_from_key, scan_wildcard
+from clients.zenoh_config import build_zenoh_config
+from service.app import render
+from service.app.errors import TransportError
+from service.app.fanout import PoseFanout
+from service.app.ingest import Ingest
+from service.app.metrics import Labels, Metrics, labels
+from service.app.sessions import Engine, SessionManager
+from service.app.settings import ServiceSettings
+from service.app.store import DataDir, MapStore
+
+log = logging.getLogger(__name__)
+
+
+class MappingRuntime:
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        *,
+        engine: Engine | None = None,
+        zenoh_config: zenoh.Config | None = None,
+    ) -> None:
+        self.settings = settings
+        self.metrics = Metrics()
+        self.data = DataDir(settings.storage.data_dir)
+        self.maps = MapStore(self.data.maps_dir)
+        self.sessions = SessionManager(
+            self.data,
+            self.maps,
+            fsync_each=settings.storage.fsync_interval_s == 0,
+            engine=engine,
+            render_map_files=render.map_files,
+        )
+        prefix = settings.zenoh.prefix
+        self.fanout = PoseFanout(prefix, self.metrics, settings.http.sse_queue_depth)
+        self.ingest = Ingest(
+            prefix, self.sessions, self.fanout.publish, self.metrics, settings.ingest
+        )
+        self._zenoh_config = zenoh_config
+        self.zenoh: zenoh.Session | None = None
+        self._subscribers: list[Any] = []
+        self._alive: set[str] = set()
+        self._alive_lock = threading.Lock()
+        self._stop = threading.Event()
+        self._syncer: threading.Thread | None = None
+        self.fsync_errors = 0
+        self.started_ns = 0
+        self.metrics.gauge("mapping_sessions", "Sessions by state.", self._session_gauge)
+        self.metrics.gauge(
+            "mapping_robots_alive",
+            "Robots whose agent liveliness token is present.",
+            self._alive_gauge,
+        )
+
+    # -- lifecycle -------------------------------------------------------------------------
+
+    def start(self) -> None:
+        try:
+            self.data.open()
+            self.maps.load()
+            t0 = time.monotonic()
+            self.sessions.load_all()
+            log.info(
+                "restored %d sessions from %s in %.2f s",
+                len(self.sessions.list()),
+                self.data.root,
+                time.monotonic() - t0,
+            )
+            self._open_zenoh()
+            self._syncer = threading.Thread(target=self._sync_loop, name="fsync", daemon=True)
+            self._syncer.start()
+            self.started_ns = time.time_ns()
+        except BaseException:
+            self.close()
+            raise
+
+    def _open_zenoh(self) -> None:
+        z = self.settings.zenoh
+        try:
+            conf = self._zenoh_config or build_zenoh_config(
+                mode=z.mode, listen=z.listen, connect=z.connect, config_file=z.config_file
+            )
+            self.zenoh = zenoh.open(conf)
+        except zenoh.ZError as err:
+            raise TransportError(f"cannot open Zenoh: {err}") from err
+        self.fanout.attach_zenoh(self.zenoh)
+        self._subscribers.append(
+            self.zenoh.declare_subscriber(scan_wildcard(z.prefix), self.ingest.on_sample)
+        )
+        self._subscribers.append(
+            self.zenoh.liveliness().declare_subscriber(
+                alive_wildcard(z.prefix), self._on_alive, history=True
+            )
+        )
+        log.info("Zenoh session %s subscribed to %s", self.zenoh.zid(), scan_wildcard(z.prefix))
+
+    def _on_alive(self, sample: Any) -> None:
+        """Liveliness callback: just bookkeeping, never blocks."""
+        robot_id = robot_id_from_key(str(sample.key_expr), self.settings.zenoh.prefix)
+        if robot_id is None:
+            return
+        with self._alive_lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(robot_id)
+            else:
+                self._alive.discard(robot_id)
+
+    def _sync_loop(self) -> None:
+        """Group commit: fsync every recording that changed, once per interval."""
+        interval = self.settings.storage.fsync_interval_s
+        if interval <= 0:
+            return  # every append is fsynced by its writer
+        while not self._stop.wait(interval):
+            self._sync_once()
+
+    def _sync_once(self) -> None:
+        for session in self.sessions.list():
+            try:
+                session.sync()
+            except OSError as err:
+                self.fsync_errors += 1
+                log.error("fsync of session %s failed: %s", session.id, err)
+
+    def close(self) -> None:
+        for sub in self._subscribers:
+            try:
+                sub.undeclare()
+            except Exception as err:
+                log.debug("undeclare: %s", err)
+        self._subscribers.clear()
+        self.ingest.close()
+        self._stop.set()
+        if self._syncer is not None:
+            self._syncer.join(timeout=10)
+            self._syncer = None
+        self.sessions.sync_all()
+        self.sessions.close()
+        self.fanout.close()
+        if self.zenoh is not None:
+            close: Any = self.zenoh.close  # untyped in zenoh's stubs
+            close()
+            self.zenoh = None
+        self.data.close()
+
+    def __enter__(self) -> MappingRuntime:
+        self.start()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # -- observations ------------------------------------------------------------------------
+
+    def alive_robots(self) -> set[str]:
+        with self._alive_lock:
+            return set(self._alive)
+
+    def _alive_gauge(self) -> list[tuple[Labels, float]]:
+        return [(labels(), float(len(self.alive_robots())))]
+
+    def _session_gauge(self) -> list[tuple[Labels, float]]:
+        counts = {"active": 0, "stopped": 0}
+        for session in self.sessions.list():
+            counts[session.state] += 1
+        return [(labels(state=k), float(v)) for k, v in counts.items()]
+
+    def zenoh_info(self) -> dict[str, Any]:
+        session = self.zenoh
+        if session is None or session.is_closed():
+            return {"open": False}
+        info = session.info
+        return {
+            "open": True,
+            "zid": str(session.zid()),
+            "peers": len(list(info.peers_zid())),
+            "routers": len(list(info.routers_zid())),
+        }

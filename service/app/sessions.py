@@ -1,0 +1,490 @@
+"""Mapping sessions: one estimator and one occupancy grid per session, one active session per robot.
+
+A `MappingSession` is driven by exactly one ingest worker (its robot's) and read by HTTP handlers;
+its lock serialises the two. Every accepted scan, then its pose, is appended to the session's
+recording before the counters and the trajectory show it, so a restart that replays the recording
+(`SessionManager.load_all`) rebuilds exactly what clients were told.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import numpy.typing as npt
+
+from clients.recording import MAX_RECORD_BYTES
+from clients.wire import (
+    DecodeError,
+    Pose,
+    PoseFlag,
+    Scan,
+    decode_pose,
+    decode_scan,
+    encode_pose,
+)
+from service.app.errors import ConflictError, NotFoundError, StoreError
+from service.app.store import (
+    DataDir,
+    MapStore,
+    SavedMapMeta,
+    SessionMeta,
+    SessionState,
+    SessionStore,
+    check_id,
+    new_session_id,
+)
+from service.core.types import LaserScan, Pose2D, PoseEstimate
+
+log = logging.getLogger(__name__)
+
+
+class Estimator(Protocol):
+    def process(self, scan: LaserScan) -> PoseEstimate: ...
+    def reset(self) -> None: ...
+
+
+class Grid(Protocol):
+    def integrate(self, scan: LaserScan, pose: Pose2D) -> None: ...
+    def snapshot(self) -> Any: ...
+
+
+EstimatorFactory = Callable[[bool], Estimator]  # use_odometry -> estimator
+GridFactory = Callable[[float], Grid]  # resolution_m -> grid
+ScanConverter = Callable[[Scan, bool], LaserScan]  # (scan, use_odometry) -> LaserScan
+
+
+def default_estimator_factory(use_odometry: bool) -> Estimator:
+    from service.core.estimator import ManhattanEstimator  # noqa: PLC0415
+    from service.core.params import EstimatorParams  # noqa: PLC0415
+
+    return ManhattanEstimator(EstimatorParams(use_odometry=use_odometry))
+
+
+def default_grid_factory(resolution_m: float) -> Grid:
+    from service.core.grid import OccupancyGrid  # noqa: PLC0415
+
+    return OccupancyGrid(resolution_m=resolution_m)
+
+
+def default_scan_converter(scan: Scan, use_odometry: bool) -> LaserScan:
+    from service.bridge import scan_to_laser  # noqa: PLC0415
+
+    return scan_to_laser(scan, use_odometry=use_odometry)
+
+
+@dataclass(frozen=True, slots=True)
+class Engine:
+    """How sessions turn scans into poses and maps (swappable in tests)."""
+
+    make_estimator: EstimatorFactory = default_estimator_factory
+    make_grid: GridFactory = default_grid_factory
+    to_laser: ScanConverter = default_scan_converter
+
+
+@dataclass(frozen=True, slots=True)
+class MapSnapshot:
+    image: Any  # service.core.grid.GridImage
+    trajectory_xy_m: npt.NDArray[np.float64]  # (N, 2)
+    last_pose: Pose | None
+    revision: int
+
+
+@dataclass(frozen=True, slots=True)
+class SessionInfo:
+    """A consistent copy of a session's public state (for HTTP answers)."""
+
+    id: str
+    robot_id: str
+    state: SessionState
+    created_ns: int
+    scans_accepted: int
+    poses: int
+    resolution_m: float
+    use_odometry: bool
+    last_pose: Pose | None
+
+
+class MappingSession:
+    def __init__(self, store: SessionStore, engine: Engine) -> None:
+        meta = store.meta
+        self.id = meta.id
+        self.robot_id = meta.robot_id
+        self.created_ns = meta.created_ns
+        self.resolution_m = meta.resolution_m
+        self.use_odometry = meta.use_odometry
+        self.lock = threading.Lock()
+        self._store = store
+        self._engine = engine
+        self._estimator = engine.make_estimator(meta.use_odometry)
+        self._grid = engine.make_grid(meta.resolution_m)
+        self._poses: list[Pose] = []
+        self._deleted = False
+        self.scans_accepted = 0
+        self.estimator_errors = 0
+        self.map_revision = 0
+        self._image_cache: tuple[Any, int] | None = None
+
+    @property
+    def state(self) -> SessionState:
+        return self._store.meta.state
+
+    @property
+    def is_active(self) -> bool:
+        return self.state == "active" and not self._deleted
+
+    # -- the hot path (ingest worker) ---------------------------------------------------------
+
+    def ingest(self, payload: bytes, scan: Scan) -> tuple[bool, Pose | None]:
+        """Record, estimate and map one validated scan: (accepted, new pose or None).
+
+        Not accepted, and nothing recorded, when the session is no longer active. An accepted
+        scan has no pose only if the estimator failed on it.
+        """
+        with self.lock:
+            if not self.is_active:
+                return False, None
+            self._store.append(payload)  # durable before it counts
+            self.scans_accepted += 1
+            pose = self._estimate(scan)
+            if pose is not None:
+                self._store.append(encode_pose(pose))
+                self._poses.append(pose)
+            return True, pose
+
+    def _estimate(self, scan: Scan) -> Pose | None:
+        """Run estimator and grid on `scan` (lock held). None if the estimator failed."""
+        try:
+            laser = self._engine.to_laser(scan, self.use_odometry)
+            estimate = self._estimator.process(laser)
+            if estimate.is_keyframe:
+                self._grid.integrate(laser, estimate.pose)
+                self.map_revision += 1
+        except Exception:
+            # The estimator promises not to raise on bad data; if it does anyway, the scan stays
+            # recorded (a replay meets the same failure) and the session carries on.
+            self.estimator_errors += 1
+            if self.estimator_errors == 1 or math.log2(self.estimator_errors).is_integer():
+                log.exception(
+                    "session %s: estimator failed on scan %d (%d failures so far)",
+                    self.id,
+                    scan.seq,
+                    self.estimator_errors,
+                )
+            return None
+        return Pose(
+            session_id=self.id,
+            robot_id=self.robot_id,
+            seq=len(self._poses),
+            stamp_ns=scan.stamp_ns,
+            x_m=estimate.pose.x_m,
+            y_m=estimate.pose.y_m,
+            theta_rad=estimate.pose.theta_rad,
+            quality=min(max(float(estimate.quality), 0.0), 1.0),
+            flags=PoseFlag(int(estimate.flags)),
+        )
+
+    # -- recovery -------------------------------------------------------------------------
+
+    def replay(self) -> None:
+        """Rebuild estimator, grid, counters and trajectory from the recording."""
+        pending: Pose | None = None  # recomputed pose of the last scan, until its record comes
+        mismatches = 0
+        undecodable = 0
+        with self.lock:
+            for record in self._store.records():
+                kind = record.kind
+                try:
+                    if kind == "scan":
+                        if pending is not None:
+                            self._poses.append(pending)
+                        scan = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
+                        self.scans_accepted += 1
+                        pending = self._estimate(scan)
+                    elif kind == "pose":
+                        recorded = decode_pose(record.payload)
+                        if pending is not None and not _same_pose(pending, recorded):
+                            mismatches += 1
+                        # The recorded pose is what clients were told: keep it.
+                        self._poses.append(recorded)
+                        pending = None
+                    else:
+                        undecodable += 1
+                except DecodeError:
+                    undecodable += 1
+            tail_repaired = False
+            if pending is not None:
+                # Crash between a scan's record and its pose's: the pose is recomputed and,
+                # if the session goes on, recorded now.
+                self._poses.append(pending)
+                tail_repaired = True
+            if self.state == "active":
+                self._store.open_for_append()
+                if tail_repaired and pending is not None:
+                    self._store.append(encode_pose(pending))
+        if mismatches or undecodable:
+            log.warning(
+                "session %s: replay found %d pose mismatches and %d unreadable records",
+                self.id,
+                mismatches,
+                undecodable,
+            )
+        log.info(
+            "session %s (robot %s, %s): restored %d scans, %d poses",
+            self.id,
+            self.robot_id,
+            self.state,
+            self.scans_accepted,
+            len(self._poses),
+        )
+
+    # -- control --------------------------------------------------------------------------
+
+    def stop(self) -> None:
+        with self.lock:
+            if self.state == "active":
+                self._store.close_writer()
+                self._store.set_state("stopped")
+
+    def reset(self) -> None:
+        """Forget the map and the trajectory; the next scan starts a new map frame."""
+        with self.lock:
+            self._store.new_epoch()
+            if self.state != "active":
+                self._store.close_writer()
+            self._estimator.reset()
+            self._grid = self._engine.make_grid(self.resolution_m)
+            self._poses = []
+            self.scans_accepted = 0
+            self.map_revision += 1
+
+    def delete(self, trash_dir: Any) -> None:
+        with self.lock:
+            self._deleted = True
+            self._store.delete(trash_dir)
+
+    def sync(self) -> None:
+        self._store.sync()
+
+    def close(self) -> None:
+        with self.lock:
+            self._store.close_writer()
+
+    # -- reads ----------------------------------------------------------------------------
+
+    def info(self) -> SessionInfo:
+        with self.lock:
+            return SessionInfo(
+                id=self.id,
+                robot_id=self.robot_id,
+                state=self.state,
+                created_ns=self.created_ns,
+                scans_accepted=self.scans_accepted,
+                poses=len(self._poses),
+                resolution_m=self.resolution_m,
+                use_odometry=self.use_odometry,
+                last_pose=self._poses[-1] if self._poses else None,
+            )
+
+    @property
+    def last_pose(self) -> Pose | None:
+        with self.lock:
+            return self._poses[-1] if self._poses else None
+
+    def trajectory(self) -> list[Pose]:
+        with self.lock:
+            return list(self._poses)
+
+    def _image(self) -> Any:
+        """The grid snapshot, cached per map revision (lock held): the live page polls the
+        map several times a second while it only changes at keyframes."""
+        if self._image_cache is None or self._image_cache[1] != self.map_revision:
+            self._image_cache = (self._grid.snapshot(), self.map_revision)
+        return self._image_cache[0]
+
+    def map_image(self) -> MapSnapshot:
+        """The map alone (no trajectory): for PGM/YAML and plain PNGs."""
+        with self.lock:
+            return MapSnapshot(
+                image=self._image(),
+                trajectory_xy_m=np.empty((0, 2)),
+                last_pose=self._poses[-1] if self._poses else None,
+                revision=self.map_revision,
+            )
+
+    def map_snapshot(self) -> MapSnapshot:
+        """The map with the trajectory's positions and the last pose."""
+        with self.lock:
+            image = self._image()
+            poses = list(self._poses)  # a cheap copy of references; the work is done unlocked
+            revision = self.map_revision
+        xy = np.fromiter(
+            (c for p in poses for c in (p.x_m, p.y_m)), dtype=np.float64, count=2 * len(poses)
+        ).reshape(-1, 2)
+        last = poses[-1] if poses else None
+        return MapSnapshot(image=image, trajectory_xy_m=xy, last_pose=last, revision=revision)
+
+
+def _same_pose(a: Pose, b: Pose) -> bool:
+    return (
+        a.seq == b.seq
+        and math.isclose(a.x_m, b.x_m, abs_tol=1e-9)
+        and math.isclose(a.y_m, b.y_m, abs_tol=1e-9)
+        and math.isclose(a.theta_rad, b.theta_rad, abs_tol=1e-9)
+    )
+
+
+class SessionManager:
+    """All sessions of this service; the index robot -> active session."""
+
+    def __init__(
+        self,
+        data: DataDir,
+        maps: MapStore,
+        *,
+        fsync_each: bool = False,
+        engine: Engine | None = None,
+        render_map_files: Callable[[MapSnapshot], dict[str, bytes]] | None = None,
+    ) -> None:
+        self._data = data
+        self._maps = maps
+        self._fsync_each = fsync_each
+        self._engine = engine if engine is not None else Engine()
+        self._render = render_map_files
+        self._lock = threading.Lock()
+        self._sessions: dict[str, MappingSession] = {}
+        self._active: dict[str, str] = {}  # robot_id -> session id
+
+    def load_all(self) -> None:
+        """Restore every session of the data directory (replaying its recording)."""
+        for directory in self._data.session_dirs():
+            if not (directory / "session.json").exists():
+                # Interrupted creation: the client never got an answer for it.
+                log.warning("removing incomplete session directory %s", directory.name)
+                self._data.trash_dir.mkdir(exist_ok=True)
+                directory.rename(self._data.trash_dir / directory.name)
+                continue
+            try:
+                store = SessionStore.load(directory, fsync_each=self._fsync_each)
+                session = MappingSession(store, self._engine)
+                session.replay()
+            except StoreError as err:
+                log.error("session %s not restored (files kept): %s", directory.name, err)
+                continue
+            with self._lock:
+                self._sessions[session.id] = session
+                if session.state == "active":
+                    previous = self._active.get(session.robot_id)
+                    if previous is not None:
+                        log.warning(
+                            "robot %s had two active sessions; stopping %s",
+                            session.robot_id,
+                            previous,
+                        )
+                        self._sessions[previous].stop()
+                    self._active[session.robot_id] = session.id
+
+    def create(self, robot_id: str, resolution_m: float, use_odometry: bool) -> MappingSession:
+        with self._lock:
+            current = self._active.get(robot_id)
+            if current is not None:
+                raise ConflictError(f"robot {robot_id!r} already has an active session {current}")
+            meta = SessionMeta(
+                id=new_session_id(),
+                robot_id=robot_id,
+                created_ns=time.time_ns(),
+                state="active",
+                resolution_m=resolution_m,
+                use_odometry=use_odometry,
+            )
+            try:
+                store = SessionStore.create(
+                    self._data.sessions_dir, meta, fsync_each=self._fsync_each
+                )
+            except OSError as err:
+                raise StoreError(f"cannot create session files: {err}") from err
+            session = MappingSession(store, self._engine)
+            self._sessions[session.id] = session
+            self._active[robot_id] = session.id
+        log.info("session %s created for robot %s", session.id, robot_id)
+        return session
+
+    def get(self, session_id: str) -> MappingSession:
+        with self._lock:
+            session = self._sessions.get(check_id(session_id, "session"))
+        if session is None:
+            raise NotFoundError(f"no such session {session_id!r}")
+        return session
+
+    def list(self) -> list[MappingSession]:
+        with self._lock:
+            return sorted(self._sessions.values(), key=lambda s: (s.created_ns, s.id))
+
+    def active_for(self, robot_id: str) -> MappingSession | None:
+        with self._lock:
+            session_id = self._active.get(robot_id)
+            return self._sessions.get(session_id) if session_id is not None else None
+
+    def active_count(self) -> int:
+        with self._lock:
+            return len(self._active)
+
+    def stop(self, session_id: str) -> MappingSession:
+        session = self.get(session_id)
+        session.stop()
+        with self._lock:
+            if self._active.get(session.robot_id) == session.id:
+                del self._active[session.robot_id]
+        log.info("session %s stopped", session.id)
+        return session
+
+    def reset(self, session_id: str) -> MappingSession:
+        session = self.get(session_id)
+        session.reset()
+        log.info("session %s reset", session.id)
+        return session
+
+    def delete(self, session_id: str) -> None:
+        session = self.get(session_id)
+        with self._lock:
+            self._sessions.pop(session.id, None)
+            if self._active.get(session.robot_id) == session.id:
+                del self._active[session.robot_id]
+        session.delete(self._data.trash_dir)
+        log.info("session %s deleted", session.id)
+
+    def save(self, session_id: str) -> SavedMapMeta:
+        if self._render is None:
+            raise StoreError("map rendering is not configured")
+        session = self.get(session_id)
+        files = self._render(session.map_image())
+        session.sync()
+        meta = self._maps.save(
+            map_id=session.id,
+            session_id=session.id,
+            robot_id=session.robot_id,
+            saved_ns=time.time_ns(),
+            files=files,
+        )
+        log.info("session %s saved as map %s v%d", session.id, meta.map_id, meta.version)
+        return meta
+
+    def sync_all(self) -> None:
+        for session in self.list():
+            try:
+                session.sync()
+            except OSError as err:
+                log.error("fsync of session %s failed: %s", session.id, err)
+
+    def close(self) -> None:
+        for session in self.list():
+            try:
+                session.close()
+            except OSError as err:
+                log.error("closing session %s failed: %s", session.id, err)

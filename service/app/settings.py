@@ -1,0 +1,165 @@
+"""The service's settings: one object, built once at start-up from the CLI and the environment.
+
+Precedence: command-line flags, then `MAPPING_*` environment variables, then defaults. Tuning
+knobs that have no flag (queue depths, fsync interval, ...) are read from the environment only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import logging
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
+
+from clients.keyexpr import DEFAULT_PREFIX, InvalidPrefixError, check_prefix
+from service.app.errors import SettingsError
+
+log = logging.getLogger(__name__)
+
+ENV_PREFIX = "MAPPING_"
+
+
+class _Frozen(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+
+class HttpSettings(_Frozen):
+    host: str = "127.0.0.1"
+    port: int = Field(default=8000, ge=0, le=65535)
+    max_body_bytes: int = Field(default=64 * 1024, ge=1024, description="request bodies above: 413")
+    sse_queue_depth: int = Field(default=64, ge=1, description="poses buffered per browser stream")
+
+
+class ZenohSettings(_Frozen):
+    mode: Literal["peer", "client", "router"] = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    config_file: Path | None = None
+    prefix: str = DEFAULT_PREFIX
+
+
+class StorageSettings(_Frozen):
+    data_dir: Path = Path("./data")
+    fsync_interval_s: float = Field(
+        default=1.0,
+        ge=0.0,
+        description="0 = fsync every append; otherwise group commit on this period",
+    )
+
+
+class IngestSettings(_Frozen):
+    # 32 scans = 0.8 s of a 40 Hz sensor: absorbs bursts without letting an overloaded worker
+    # fall seconds behind real time (the oldest scans are dropped, and counted, instead).
+    queue_depth: int = Field(default=32, ge=1, description="scans buffered per robot (drop oldest)")
+    max_robots: int = Field(
+        default=1024, ge=1, description="robots tracked at once (queues, workers)"
+    )
+    max_payload_bytes: int = Field(default=1 << 20, ge=1024)
+
+
+class SecuritySettings(_Frozen):
+    token: SecretStr | None = None
+    allow_insecure_bind: bool = False
+
+
+class ServiceSettings(_Frozen):
+    http: HttpSettings = Field(default_factory=HttpSettings)
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings)
+    storage: StorageSettings = Field(default_factory=StorageSettings)
+    ingest: IngestSettings = Field(default_factory=IngestSettings)
+    security: SecuritySettings = Field(default_factory=SecuritySettings)
+
+    @property
+    def token(self) -> str | None:
+        if self.security.token is None:
+            return None
+        return self.security.token.get_secret_value() or None
+
+    def check(self) -> None:
+        """Refuse settings that are unsafe or unusable; raises `SettingsError` with the reason."""
+        try:
+            check_prefix(self.zenoh.prefix)
+        except InvalidPrefixError as err:
+            raise SettingsError(str(err)) from err
+        if not is_loopback_host(self.http.host) and self.token is None:
+            if not self.security.allow_insecure_bind:
+                raise SettingsError(
+                    f"refusing to bind HTTP to non-loopback address {self.http.host!r} without a "
+                    "token: pass --token (or set MAPPING_TOKEN), or --allow-insecure-bind"
+                )
+            log.warning(
+                "HTTP bound to %s without a token: anyone who can reach it controls sessions",
+                self.http.host,
+            )
+
+    def describe(self) -> dict[str, Any]:
+        """The effective settings for the start-up log, with the token redacted."""
+        data = self.model_dump(mode="json")
+        data["security"]["token"] = "<set>" if self.token else None
+        return data
+
+
+def is_loopback_host(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def _env(env: Mapping[str, str], name: str) -> str | None:
+    value = env.get(ENV_PREFIX + name)
+    return value if value not in (None, "") else None
+
+
+def build_settings(
+    args: argparse.Namespace, env: Mapping[str, str] | None = None
+) -> ServiceSettings:
+    """Settings for `serve` from parsed arguments plus `MAPPING_*` variables."""
+    env = os.environ if env is None else env
+
+    def from_env(**names: str) -> dict[str, str]:
+        """Only the variables that are set, so that unset ones keep the model's defaults."""
+        return {field: v for field, name in names.items() if (v := _env(env, name)) is not None}
+
+    raw: dict[str, Any] = {
+        "http": {
+            "host": args.http_host,
+            "port": args.http_port,
+            **from_env(max_body_bytes="MAX_BODY_BYTES", sse_queue_depth="SSE_QUEUE_DEPTH"),
+        },
+        "zenoh": {
+            "listen": tuple(getattr(args, "zenoh_listen", None) or ()),
+            "connect": tuple(getattr(args, "zenoh_connect", None) or ()),
+            "config_file": getattr(args, "zenoh_config", None),
+            "prefix": getattr(args, "prefix", DEFAULT_PREFIX),
+            **from_env(mode="ZENOH_MODE"),
+        },
+        "storage": {
+            "data_dir": args.data_dir,
+            **from_env(fsync_interval_s="FSYNC_INTERVAL_S"),
+        },
+        "ingest": from_env(
+            queue_depth="QUEUE_DEPTH",
+            max_robots="MAX_ROBOTS",
+            max_payload_bytes="MAX_PAYLOAD_BYTES",
+        ),
+        "security": {
+            "token": getattr(args, "token", None) or _env(env, "TOKEN"),
+            "allow_insecure_bind": bool(getattr(args, "allow_insecure_bind", False)),
+        },
+    }
+    try:
+        settings = ServiceSettings.model_validate(raw)
+    except ValidationError as err:
+        first = err.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise SettingsError(f"invalid setting {where}: {first['msg']}") from err
+    settings.check()
+    return settings

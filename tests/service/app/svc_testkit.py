@@ -1,0 +1,307 @@
+"""Helpers for the mapping-service tests (not a test module).
+
+- `SimRobot`: wire `Scan`s of a robot driving the synthetic building (sensor_agent.sim), with
+  the ground truth, on a simulated 40 Hz clock (not the wall clock);
+- `ServiceProc`: `mapping-service serve` as a real subprocess on free loopback ports;
+- `zenoh_peer`: a test-side Zenoh session connected to a service;
+- `malformed_payloads`: a deterministic mix of bad scan payloads, with their expected reasons.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+from conftest import REPO_ROOT, free_port
+from fastapi.testclient import TestClient
+
+from clients.wire import Scan, encode_scan
+from clients.zenoh_config import build_zenoh_config
+from sensor_agent.sim import LaserModel, RobotMotion, World, generate_building, simulate_scan
+from service.app.api.app import create_app
+from service.app.runtime import MappingRuntime
+from service.app.settings import (
+    HttpSettings,
+    IngestSettings,
+    SecuritySettings,
+    ServiceSettings,
+    StorageSettings,
+)
+
+SCAN_PERIOD_NS = 25_000_000
+
+
+def wait_for(
+    condition: Callable[[], object], timeout_s: float, what: str, period_s: float = 0.05
+) -> object:
+    """Poll `condition` until truthy; fail the test after the deadline (no bare sleeps)."""
+    deadline = time.monotonic() + timeout_s
+    last_error: Exception | None = None
+    while time.monotonic() < deadline:
+        try:
+            result = condition()
+        except Exception as err:  # not ready yet (connection refused, 404, ...)
+            last_error = err
+        else:
+            if result:
+                return result
+        time.sleep(period_s)
+    pytest.fail(f"timed out after {timeout_s} s waiting for {what} (last error: {last_error!r})")
+
+
+@lru_cache(maxsize=4)
+def building(seed: int, size: str = "small") -> World:
+    return generate_building(seed, size)  # type: ignore[arg-type]
+
+
+class SimRobot:
+    """Scans of one robot on the corridor loop of a synthetic building, 25 ms apart."""
+
+    def __init__(self, robot_id: str, seed: int = 1, size: str = "small") -> None:
+        self.robot_id = robot_id
+        self.world = building(seed, size)
+        self.motion = RobotMotion(self.world, seed)
+        self.model = LaserModel.utm30lx()
+        self.seq = 0
+        self._rng = np.random.default_rng(seed)
+        self._t0_ns = 1_700_000_000_000_000_000
+
+    def truth(self, seq: int) -> tuple[float, float, float]:
+        return self.motion.pose_at(seq * SCAN_PERIOD_NS / 1e9)
+
+    def next_scan(self) -> Scan:
+        seq = self.seq
+        self.seq += 1
+        sample = simulate_scan(self.world, self.truth(seq), self.model, self._rng)
+        return Scan(
+            robot_id=self.robot_id,
+            seq=seq,
+            sensor_stamp_ns=seq * SCAN_PERIOD_NS,
+            host_stamp_ns=self._t0_ns + seq * SCAN_PERIOD_NS,
+            angle_min_rad=self.model.angle_min_rad,
+            angle_increment_rad=self.model.angle_increment_rad,
+            range_min_m=self.model.range_min_m,
+            range_max_m=self.model.range_max_m,
+            ranges_m=np.nan_to_num(sample.ranges_m, nan=0.0),
+        )
+
+    def next_payload(self) -> bytes:
+        return encode_scan(self.next_scan())
+
+
+def relative(a: Any, b: Any) -> np.ndarray:
+    """`inverse(a) ∘ b` as (x, y, theta); `b` may be (3,) or (N, 3)."""
+    b = np.asarray(b, dtype=np.float64)
+    dx, dy = b[..., 0] - a[0], b[..., 1] - a[1]
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dth = (b[..., 2] - a[2] + math.pi) % (2 * math.pi) - math.pi
+    return np.stack([c * dx + s * dy, -s * dx + c * dy, dth], axis=-1)
+
+
+def malformed_payloads(robot_id: str, count: int) -> Iterator[tuple[bytes, str]]:
+    """`count` bad scan payloads cycling through kinds of damage, with the expected reason."""
+    good = encode_scan(SimRobot(robot_id).next_scan())
+    body = msgpack.unpackb(good, raw=False)
+
+    def variant(**changes: object) -> bytes:
+        d = dict(body)
+        for k, v in changes.items():
+            if v is None:
+                d.pop(k, None)
+            else:
+                d[k] = v
+        packed = msgpack.packb(d, use_bin_type=True)
+        assert isinstance(packed, bytes)
+        return packed
+
+    kinds: list[tuple[bytes, str]] = [
+        (b"\xc1garbage", "malformed_msgpack"),
+        (msgpack.packb([1, 2, 3]), "not_a_map"),
+        (variant(v=99), "unsupported_version"),
+        (variant(seq=None), "missing_field"),
+        (variant(angle_increment_rad=-0.1), "bad_geometry"),
+        (variant(ranges=b"\x00\x01\x02"), "beam_count_mismatch"),
+        (variant(robot_id="someone-else"), "robot_id_mismatch"),
+        (good[: len(good) // 2], "malformed_msgpack"),
+    ]
+    for i in range(count):
+        yield kinds[i % len(kinds)]
+
+
+class ServiceProc:
+    """`mapping-service serve` in a subprocess; restartable on the same ports and data dir."""
+
+    def __init__(self, data_dir: Path, token: str | None = None, prefix: str = "robots") -> None:
+        self.data_dir = data_dir
+        self.token = token
+        self.prefix = prefix
+        self.http_port = free_port()
+        self.zenoh_endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.url = f"http://127.0.0.1:{self.http_port}"
+        self.log_path = data_dir.parent / f"service-{self.http_port}.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def start(self, timeout_s: float = 30.0, env: dict[str, str] | None = None) -> None:
+        cmd = [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "serve",
+            "--http-port",
+            str(self.http_port),
+            "--data-dir",
+            str(self.data_dir),
+            "--zenoh-listen",
+            self.zenoh_endpoint,
+            "--prefix",
+            self.prefix,
+        ]
+        if self.token:
+            cmd += ["--token", self.token]
+        full_env = {k: v for k, v in os.environ.items() if k != "MAPPING_TOKEN"}
+        full_env.update(env or {})
+        with self.log_path.open("ab") as log:
+            self.proc = subprocess.Popen(
+                cmd, stdout=log, stderr=subprocess.STDOUT, cwd=REPO_ROOT, env=full_env
+            )
+
+        def healthy() -> bool:
+            assert self.proc is not None
+            if self.proc.poll() is not None:
+                pytest.fail(f"service exited with {self.proc.returncode}:\n{self.log_tail()}")
+            return httpx.get(self.url + "/health", timeout=2.0).status_code == 200
+
+        wait_for(healthy, timeout_s, "the service to answer /health")
+
+    def headers(self) -> dict[str, str]:
+        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
+
+    def create_session(self, robot_id: str, **params: object) -> dict[str, object]:
+        r = httpx.post(
+            self.url + "/sessions", json={"robot_id": robot_id, **params}, headers=self.headers()
+        )
+        assert r.status_code == 201, r.text
+        data = r.json()
+        assert isinstance(data, dict)
+        return data
+
+    def get(self, path: str) -> httpx.Response:
+        return httpx.get(self.url + path, timeout=10.0)
+
+    def json(self, path: str) -> dict[str, object]:
+        r = self.get(path)
+        assert r.status_code == 200, f"{path}: {r.status_code} {r.text}"
+        data = r.json()
+        assert isinstance(data, dict)
+        return data
+
+    def metrics(self) -> dict[str, float]:
+        from service.app.metrics import parse_text
+
+        return parse_text(self.get("/metrics").text)
+
+    def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0) -> int:
+        if self.proc is None:
+            return 0
+        proc, self.proc = self.proc, None
+        if proc.poll() is None:
+            proc.send_signal(sig)
+            try:
+                return proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=5)
+                pytest.fail(f"service ignored signal {sig}:\n{self.log_tail()}")
+        return proc.returncode
+
+    def kill9(self) -> None:
+        assert self.proc is not None
+        self.proc.kill()  # SIGKILL: no cleanup at all
+        self.proc.wait(timeout=10)
+        self.proc = None
+
+    def log_tail(self, lines: int = 40) -> str:
+        try:
+            return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
+        except OSError:
+            return "(no log)"
+
+
+@contextlib.contextmanager
+def zenoh_peer(endpoint: str) -> Iterator[zenoh.Session]:
+    """A test-side Zenoh session connected to the service, always closed."""
+    session = zenoh.open(build_zenoh_config(connect=[endpoint]))
+    try:
+        yield session
+    finally:
+        session.close()  # type: ignore[no-untyped-call]
+
+
+def metric_sum(metrics: dict[str, float], name: str, **label_filter: str) -> float:
+    """Sum of the series of `name` whose labels include `label_filter`."""
+    total = 0.0
+    for series, value in metrics.items():
+        if series != name and not series.startswith(name + "{"):
+            continue
+        if all(f'{k}="{v}"' in series for k, v in label_filter.items()):
+            total += value
+    return total
+
+
+# ---------------------------------------------------------------------------------------------
+# In-process fixtures (imported by the test modules: a conftest.py here would shadow the root one)
+
+RuntimeFactory = Callable[..., MappingRuntime]
+
+
+def make_settings(data_dir: Path, token: str | None = None, **ingest: int) -> ServiceSettings:
+    return ServiceSettings(
+        http=HttpSettings(max_body_bytes=64 * 1024),
+        storage=StorageSettings(data_dir=data_dir, fsync_interval_s=0.2),
+        ingest=IngestSettings(**ingest),
+        security=SecuritySettings(token=token),  # type: ignore[arg-type]
+    )
+
+
+@pytest.fixture(name="runtime_factory")
+def runtime_factory_fixture(tmp_path: Path) -> Iterator[RuntimeFactory]:
+    """Start runtimes on an isolated Zenoh session (listens nowhere); all closed at the end."""
+    started: list[MappingRuntime] = []
+
+    def make(
+        data_dir: Path | None = None, token: str | None = None, **ingest: int
+    ) -> MappingRuntime:
+        settings = make_settings(data_dir or tmp_path / "data", token, **ingest)
+        runtime = MappingRuntime(settings, zenoh_config=build_zenoh_config())
+        runtime.start()
+        started.append(runtime)
+        return runtime
+
+    yield make
+    for runtime in started:
+        runtime.close()  # idempotent
+
+
+@pytest.fixture(name="runtime")
+def runtime_fixture(runtime_factory: RuntimeFactory) -> MappingRuntime:
+    return runtime_factory()
+
+
+@pytest.fixture(name="client")
+def client_fixture(runtime: MappingRuntime) -> Iterator[TestClient]:
+    with TestClient(create_app(runtime)) as c:
+        yield c

@@ -1,0 +1,228 @@
+"""Durable state: restart, crash images (torn tails), resets, deletes, saved maps, kill -9."""
+
+from __future__ import annotations
+
+import io
+import shutil
+import threading
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+import zenoh
+from PIL import Image
+from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by name
+    RuntimeFactory,
+    ServiceProc,
+    SimRobot,
+    runtime_factory_fixture,
+    wait_for,
+    zenoh_peer,
+)
+
+from clients.keyexpr import scan_key
+from clients.recording import RecordingWriter, iter_raw_records
+from service.app.errors import StoreError
+from service.app.runtime import MappingRuntime
+from service.app.sessions import MappingSession
+
+
+def feed(runtime: MappingRuntime, robot: SimRobot, count: int) -> None:
+    for _ in range(count):
+        runtime.ingest.submit(scan_key(robot.robot_id), robot.next_payload())
+    wait_for(lambda: runtime.ingest.pending() == 0, 60, "the ingest queue to drain")
+
+
+def recording_of(session: MappingSession) -> Path:
+    return session._store.recording_path
+
+
+def assert_same_session(a: MappingSession, b: MappingSession) -> None:
+    ia, ib = a.info(), b.info()
+    assert ia == ib
+    assert a.trajectory() == b.trajectory()
+    ma, mb = a.map_snapshot(), b.map_snapshot()
+    np.testing.assert_array_equal(ma.image.occupancy, mb.image.occupancy)
+
+
+def test_clean_restart_restores_everything(tmp_path: Path, runtime_factory: RuntimeFactory) -> None:
+    data = tmp_path / "data"
+    first = runtime_factory(data)
+    active = first.sessions.create("r1", 0.05, True)
+    robot = SimRobot("r1")
+    feed(first, robot, 30)
+    stopped = first.sessions.create("r2", 0.1, False)
+    feed(first, SimRobot("r2"), 5)
+    first.sessions.stop(stopped.id)
+    saved = first.sessions.save(active.id)
+    gone = first.sessions.create("r3", 0.05, True)
+    first.sessions.delete(gone.id)
+    first.close()
+
+    second = runtime_factory(data)
+    assert_same_session(active, second.sessions.get(active.id))
+    assert_same_session(stopped, second.sessions.get(stopped.id))
+    assert second.sessions.get(stopped.id).state == "stopped"
+    assert second.sessions.active_for("r1") is not None
+    assert second.sessions.active_for("r2") is None
+    assert {s.id for s in second.sessions.list()} == {active.id, stopped.id}
+    assert second.maps.list() == [saved]
+    assert second.maps.file(saved.map_id, saved.version, "map.png").read_bytes()
+    # The restored session goes on mapping with continuing sequence numbers.
+    feed(second, robot, 3)
+    restored = second.sessions.get(active.id)
+    assert [p.seq for p in restored.trajectory()] == list(range(33))
+
+
+def test_crash_image_with_torn_tail_and_missing_pose(
+    tmp_path: Path, runtime_factory: RuntimeFactory
+) -> None:
+    """What kill -9 leaves: every flushed record, maybe half a record, maybe a scan w/o pose."""
+    data = tmp_path / "data"
+    live = runtime_factory(data)
+    session = live.sessions.create("r1", 0.05, True)
+    robot = SimRobot("r1")
+    feed(live, robot, 25)
+    crash = tmp_path / "crash"
+    shutil.copytree(data, crash)  # the files as the kernel has them, service still running
+    live.close()
+
+    copy_rec = crash / "sessions" / session.id / recording_of(session).name
+    with RecordingWriter(copy_rec) as writer:  # one more scan recorded, its pose never was
+        writer.append(robot.next_payload())
+    with copy_rec.open("ab") as f:  # and half a record after it
+        f.write(b"\x40\x00\x00\x00\x12\x34")
+
+    restored = runtime_factory(crash).sessions.get(session.id)
+    info = restored.info()
+    assert info.scans_accepted == 26
+    assert info.poses == 26
+    assert restored.trajectory()[:25] == session.trajectory()
+    kinds = [r.kind for r in iter_raw_records(copy_rec)]
+    assert kinds == ["scan", "pose"] * 26  # torn tail cut, missing pose recorded
+
+
+def test_reset_survives_restart_and_stale_epochs_go(
+    tmp_path: Path, runtime_factory: RuntimeFactory
+) -> None:
+    data = tmp_path / "data"
+    first = runtime_factory(data)
+    session = first.sessions.create("r1", 0.05, True)
+    robot = SimRobot("r1")
+    feed(first, robot, 10)
+    old_recording = recording_of(session)
+    first.sessions.reset(session.id)
+    assert not old_recording.exists()
+    feed(first, robot, 4)
+    first.close()
+    stale = old_recording.parent / "epoch-000007.mrec"
+    stale.write_bytes(b"left over by an interrupted reset")
+    (data / "sessions" / "s-half-created").mkdir()
+
+    second = runtime_factory(data)
+    info = second.sessions.get(session.id).info()
+    assert (info.scans_accepted, info.poses) == (4, 4)
+    assert not stale.exists()
+    assert [s.id for s in second.sessions.list()] == [session.id]
+
+
+def test_one_service_per_data_dir(tmp_path: Path, runtime_factory: RuntimeFactory) -> None:
+    runtime_factory(tmp_path / "data")
+    with pytest.raises(StoreError, match="in use"):
+        runtime_factory(tmp_path / "data")
+
+
+def test_group_commit_fsyncs_only_changed_recordings(
+    runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    runtime = runtime_factory()
+    session = runtime.sessions.create("r1", 0.05, True)
+    runtime.sessions.create("idle", 0.05, True)
+    feed(runtime, SimRobot("r1"), 2)
+    synced: list[int] = []
+    real_fsync = __import__("os").fsync
+
+    def counting_fsync(fd: int) -> None:
+        synced.append(fd)
+        real_fsync(fd)
+
+    monkeypatch.setattr("service.app.store.os.fsync", counting_fsync)
+    runtime._stop.set()  # park the periodic syncer; drive it by hand
+    runtime._sync_once()
+    assert len(synced) == 1  # only the session with new records
+    runtime._sync_once()
+    assert len(synced) == 1  # nothing new since
+    assert session.info().scans_accepted == 2
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(90)
+def test_kill_9_mid_session_loses_nothing_accepted(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    token = "k9-token"
+    svc = ServiceProc(data, token=token)
+    svc.start()
+    try:
+        # Control without the token is refused by the real process.
+        assert httpx.post(svc.url + "/sessions", json={"robot_id": "k9"}).status_code == 401
+        sid = svc.create_session("k9")["id"]
+        robot = SimRobot("k9")
+        stop = threading.Event()
+        with zenoh_peer(svc.zenoh_endpoint) as peer:
+            pub = peer.declare_publisher(
+                scan_key("k9"), congestion_control=zenoh.CongestionControl.BLOCK
+            )
+
+            def publish() -> None:
+                while not stop.is_set():
+                    pub.put(robot.next_payload())
+                    stop.wait(0.02)
+
+            feeder = threading.Thread(target=publish, daemon=True)
+            feeder.start()
+            try:
+                wait_for(
+                    lambda: svc.json(f"/sessions/{sid}")["scans_accepted"] >= 60, 60, "60 scans"
+                )
+                before = svc.json(f"/sessions/{sid}")
+                traj_before = svc.json(f"/sessions/{sid}/trajectory")["poses"]
+                svc.kill9()  # while scans keep arriving
+            finally:
+                stop.set()
+                feeder.join(5)
+                pub.undeclare()  # type: ignore[no-untyped-call]
+    finally:
+        svc.stop()
+
+    again = ServiceProc(data, token=token)
+    again.start()
+    try:
+        after = again.json(f"/sessions/{sid}")
+        traj_after = again.json(f"/sessions/{sid}/trajectory")["poses"]
+        assert after["state"] == "active"
+        assert after["scans_accepted"] >= before["scans_accepted"]
+        assert after["poses"] == after["scans_accepted"] == len(traj_after)
+        assert len(traj_before) >= before["poses"]
+        # Everything acknowledged before the kill is back, identical.
+        assert traj_after[: len(traj_before)] == traj_before
+        png = again.get(f"/sessions/{sid}/map.png")
+        assert png.status_code == 200
+        Image.open(io.BytesIO(png.content)).verify()
+        # And mapping goes on where it stopped.
+        with zenoh_peer(again.zenoh_endpoint) as peer:
+            pub = peer.declare_publisher(
+                scan_key("k9"), congestion_control=zenoh.CongestionControl.BLOCK
+            )
+            target = after["scans_accepted"] + 5
+
+            def more() -> bool:
+                pub.put(robot.next_payload())
+                return bool(again.json(f"/sessions/{sid}")["scans_accepted"] >= target)
+
+            wait_for(more, 30, "mapping to continue after the restart", period_s=0.05)
+            pub.undeclare()  # type: ignore[no-untyped-call]
+        seqs = [p["sequence"] for p in again.json(f"/sessions/{sid}/trajectory")["poses"]]
+        assert seqs == list(range(len(seqs)))
+    finally:
+        assert again.stop() == 0, again.log_tail()

@@ -1,0 +1,242 @@
+"""Ingest and fan-out in process: validation, counting, queues, Zenoh path, slow subscribers."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any
+
+import pytest
+from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by name
+    RuntimeFactory,
+    SimRobot,
+    malformed_payloads,
+    runtime_factory_fixture,
+    runtime_fixture,
+    wait_for,
+)
+
+from clients.keyexpr import pose_wildcard, scan_key
+from clients.wire import Pose, decode_pose, encode_scan
+from service.app.fanout import PoseFanout
+from service.app.metrics import Metrics
+from service.app.runtime import MappingRuntime
+from service.app.sessions import Engine, default_estimator_factory
+from service.core.types import LaserScan, PoseEstimate
+
+
+def drain(runtime: MappingRuntime) -> None:
+    wait_for(lambda: runtime.ingest.pending() == 0, 60, "the ingest queues to drain")
+
+
+def test_malformed_scans_counted_by_reason_and_logged_once(
+    runtime_factory: RuntimeFactory, caplog: pytest.LogCaptureFixture
+) -> None:
+    runtime = runtime_factory(queue_depth=256)  # all 120 queued at once: none dropped
+    runtime.sessions.create("bad-robot", 0.05, True)
+    expected: Counter[str] = Counter()
+    with caplog.at_level(logging.WARNING, logger="service.app.ingest"):
+        for payload, reason in malformed_payloads("bad-robot", 120):
+            runtime.ingest.submit(scan_key("bad-robot"), payload)
+            expected[reason] += 1
+        drain(runtime)
+    m = runtime.metrics
+    for reason, count in expected.items():
+        assert m.value("mapping_scans_rejected_total", reason=reason) == count, reason
+    assert m.total("mapping_scans_accepted_total") == 0
+    assert m.total("mapping_scans_dropped_total") == 0
+    logged = [r for r in caplog.records if "bad-robot" in r.getMessage()]
+    assert len(logged) == len(expected)  # once per (reason, robot), not per message
+    assert runtime.sessions.active_for("bad-robot") is not None
+    assert runtime.sessions.list()[0].info().scans_accepted == 0
+
+
+def test_unsafe_keys_and_sample_kinds(runtime: MappingRuntime) -> None:
+    runtime.ingest.submit("robots/a/b/scan", b"x")
+    runtime.ingest.submit("elsewhere/a/scan", b"x")
+    runtime.ingest.submit("robots/-dash/scan", b"x")
+    assert runtime.metrics.value("mapping_scans_rejected_total", reason="bad_key") == 3
+
+    @dataclass
+    class Payload:
+        data: bytes
+
+        def __len__(self) -> int:
+            return len(self.data)
+
+        def to_bytes(self) -> bytes:
+            return self.data
+
+    @dataclass
+    class Sample:
+        key_expr: str
+        payload: Payload
+        kind: Any
+
+    import zenoh
+
+    big = Sample("robots/r1/scan", Payload(b"x" * (2 << 20)), zenoh.SampleKind.PUT)
+    runtime.ingest.on_sample(big)
+    assert runtime.metrics.value("mapping_scans_rejected_total", reason="too_large") == 1
+    runtime.ingest.on_sample(Sample("robots/r1/scan", Payload(b""), zenoh.SampleKind.DELETE))
+    runtime.ingest.on_sample(object())  # never raises out of the callback
+    drain(runtime)
+    assert runtime.metrics.total("mapping_scans_rejected_total") == 4
+
+
+class BlockingEstimator:
+    """The real estimator behind a gate, to hold a worker busy."""
+
+    def __init__(self, gate: threading.Event, entered: threading.Event) -> None:
+        self._inner = default_estimator_factory(True)
+        self._gate = gate
+        self._entered = entered
+
+    def process(self, scan: LaserScan) -> PoseEstimate:
+        self._entered.set()
+        self._gate.wait(30)
+        return self._inner.process(scan)
+
+    def reset(self) -> None:
+        self._inner.reset()
+
+
+def test_full_queue_drops_oldest_and_never_blocks_the_callback(
+    runtime_factory: RuntimeFactory,
+) -> None:
+    gate, entered = threading.Event(), threading.Event()
+    depth = 8
+    runtime = runtime_factory(queue_depth=depth)
+    # Swap in a gated estimator for this robot's session.
+    runtime.sessions._engine = Engine(make_estimator=lambda _: BlockingEstimator(gate, entered))
+    session = runtime.sessions.create("slow", 0.05, True)
+    robot = SimRobot("slow")
+    payloads = [robot.next_payload() for _ in range(41)]
+    runtime.ingest.submit(scan_key("slow"), payloads[0])
+    assert entered.wait(10), "the worker should be inside the estimator"
+    for payload in payloads[1:]:  # the worker is stuck: these only queue up (or drop)
+        runtime.ingest.submit(scan_key("slow"), payload)
+    assert runtime.ingest.robots()[0].queue_depth == depth
+    dropped = runtime.metrics.value(
+        "mapping_scans_dropped_total", robot="slow", reason="queue_full"
+    )
+    assert dropped == 40 - depth
+    gate.set()
+    drain(runtime)
+    info = session.info()
+    assert info.scans_accepted == 1 + depth
+    # The survivors are the newest scans (drop oldest), in order.
+    stamps = [p.stamp_ns for p in session.trajectory()]
+    robot_stamps = [1_700_000_000_000_000_000 + s * 25_000_000 for s in range(41)]
+    assert stamps == [robot_stamps[0], *robot_stamps[41 - depth :]]
+
+
+def test_robot_limit(runtime_factory: RuntimeFactory) -> None:
+    runtime = runtime_factory(max_robots=2)
+    for rid in ("r1", "r2", "r3", "r4"):
+        runtime.ingest.submit(scan_key(rid), SimRobot(rid).next_payload())
+    drain(runtime)
+    assert [r.robot_id for r in runtime.ingest.robots()] == ["r1", "r2"]
+    assert (
+        runtime.metrics.value("mapping_scans_dropped_total", robot="", reason="too_many_robots")
+        == 2
+    )
+    assert runtime.metrics.value("mapping_scans_unmapped_total", robot="r1") == 1
+
+
+def test_zenoh_path_in_process_and_pose_publication(runtime: MappingRuntime) -> None:
+    """Scans put on the (isolated) Zenoh session reach the wildcard subscriber; poses go out."""
+    assert runtime.zenoh is not None
+    received: list[Pose] = []
+    lock = threading.Lock()
+
+    def on_pose(sample: Any) -> None:
+        with lock:
+            received.append(decode_pose(sample.payload.to_bytes()))
+
+    sub = runtime.zenoh.declare_subscriber(pose_wildcard(), on_pose)
+    try:
+        session = runtime.sessions.create("zr", 0.05, True)
+        robot = SimRobot("zr")
+        for _ in range(20):
+            runtime.zenoh.put(scan_key("zr"), encode_scan(robot.next_scan()))
+        wait_for(lambda: session.info().poses == 20, 60, "20 poses")
+        wait_for(lambda: len(received) == 20, 10, "20 published poses")
+    finally:
+        sub.undeclare()  # type: ignore[no-untyped-call]
+    assert [p.seq for p in received] == list(range(20))
+    assert received == session.trajectory()
+    assert runtime.metrics.total("mapping_poses_published_total") == 20
+
+
+def test_slow_stream_subscriber_loses_oldest_and_never_delays_others() -> None:
+    metrics = Metrics()
+    fanout = PoseFanout("robots", metrics, stream_queue_depth=5)
+    total = 200
+
+    def pose(seq: int) -> Pose:
+        return Pose("s-1", "r1", seq, seq, 0.0, 0.0, 0.0, 1.0)
+
+    async def scenario() -> tuple[list[int], list[int], int]:
+        fanout.bind_loop(asyncio.get_running_loop())
+        fast = fanout.open_stream("s-1")
+        slow = fanout.open_stream("s-1")  # never read until the end
+        other = fanout.open_stream("s-2")
+        done = threading.Event()
+        acks = threading.Semaphore(0)
+
+        def worker() -> None:  # publishes from a foreign thread, like an ingest worker
+            for seq in range(total):
+                fanout.publish(pose(seq))
+                # Paced by the fast reader only: the slow one never holds anything up.
+                assert acks.acquire(timeout=10)
+            done.set()
+
+        threading.Thread(target=worker).start()
+        got_fast: list[int] = []
+        while len(got_fast) < total:
+            item = await asyncio.wait_for(fast.queue.get(), 10)
+            assert item is not None
+            got_fast.append(item.seq)
+            acks.release()
+        await asyncio.to_thread(done.wait, 10)
+        fanout.end_streams()
+        got_slow: list[int] = []
+        while (item := await slow.queue.get()) is not None:
+            got_slow.append(item.seq)
+        assert done.is_set()
+        assert other.queue.get_nowait() is None  # nothing for another session
+        for stream in (fast, slow, other):
+            fanout.close_stream(stream)
+        return got_fast, got_slow, slow.dropped
+
+    got_fast, got_slow, slow_dropped = asyncio.run(scenario())
+    assert got_fast == list(range(total))
+    assert got_slow == sorted(got_slow)
+    assert got_slow[-1] == total - 1  # the newest survive
+    assert slow_dropped == total - len(got_slow)
+    assert metrics.total("mapping_pose_stream_dropped_total") == slow_dropped
+
+
+def test_recording_failure_is_counted_and_the_worker_survives(
+    runtime: MappingRuntime, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    session = runtime.sessions.create("disk", 0.05, True)
+    robot = SimRobot("disk")
+
+    def full_disk(payload: bytes) -> None:
+        raise OSError(28, "No space left on device")
+
+    with monkeypatch.context() as m:
+        m.setattr(session._store, "append", full_disk)
+        runtime.ingest.submit(scan_key("disk"), robot.next_payload())
+        drain(runtime)
+    assert session.info().scans_accepted == 0  # not recorded, so not accepted
+    assert runtime.metrics.value("mapping_scans_dropped_total", robot="disk", reason="store_error")
+    assert runtime.ingest.store_errors == 1
+    runtime.ingest.submit(scan_key("disk"), robot.next_payload())  # the disk is back
+    drain(runtime)
+    assert session.info().scans_accepted == 1
