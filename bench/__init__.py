@@ -1,0 +1,1 @@
+"""Benchmarks and evaluation: `python -m bench [--quick]` writes `docs/benchmarks.md`."""

@@ -1,0 +1,347 @@
+"""`mapping-service map INPUT --out DIR`: map a bag or a recording offline.
+
+Reads the scans (`clients.logs`), runs the estimator on each, integrates the map at the
+estimated poses and writes into DIR:
+
+- `trajectory.tum`: one line per scan, `stamp x y z qx qy qz qw`, stamp = scan header stamp (s);
+- `map.png` (with the trajectory drawn), `map.pgm` + `map.yaml` (ROS map_server);
+- `report.json`: scan count, estimator time per scan, quality and flag statistics, input, map.
+
+The library functions (`map_scans`, `write_outputs`, `build_report`) are what `bench.evaluate`
+calls in-process; `run_map` is the command-line entry point.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import numpy as np
+import numpy.typing as npt
+from tqdm import tqdm
+
+from clients.logs import LogError, LogInfo, iter_log_scans, probe_log
+from clients.wire import PoseFlag, Scan
+from service import mapio
+from service.bridge import scan_to_laser
+from service.core.estimator import ManhattanEstimator
+from service.core.grid import OccupancyGrid
+from service.core.params import EstimatorParams
+from service.core.types import Pose2D, PoseEstimate
+
+log = logging.getLogger(__name__)
+
+EXIT_OK: Final = 0
+EXIT_OUTPUT: Final = 1  # the output directory cannot be written
+EXIT_INPUT: Final = 2  # the input cannot be read or holds no scans
+# Integrate every keyframe, and at least every Nth scan so slow motion still paints free space.
+DEFAULT_INTEGRATE_EVERY: Final = 5
+QUALITY_LOW: Final = 0.5
+
+
+class OfflineError(Exception):
+    """A mapping run that cannot produce its outputs (no scans, unwritable output, ...)."""
+
+
+@dataclass(slots=True)
+class MapRun:
+    """Everything one offline mapping run produced, before it is written out."""
+
+    stamps_ns: list[int] = field(default_factory=list)
+    estimates: list[PoseEstimate] = field(default_factory=list)
+    estimator_ns: list[int] = field(default_factory=list)  # time of `process` per scan
+    integrate_ns: list[int] = field(default_factory=list)  # time of `integrate` per call
+    grid: OccupancyGrid | None = None
+    wall_s: float = 0.0
+    beam_counts: set[int] = field(default_factory=set)
+    with_odometry: int = 0  # scans that carried odometry into the estimator
+
+    @property
+    def poses(self) -> list[Pose2D]:
+        return [e.pose for e in self.estimates]
+
+    @property
+    def scans(self) -> int:
+        return len(self.estimates)
+
+
+def map_scans(
+    scans: Iterable[Scan],
+    *,
+    resolution_m: float = 0.05,
+    use_odometry: bool = True,
+    params: EstimatorParams | None = None,
+    integrate_every: int = DEFAULT_INTEGRATE_EVERY,
+    total: int | None = None,
+    progress: bool = False,
+    on_estimate: Callable[[Scan, PoseEstimate], None] | None = None,
+) -> MapRun:
+    """Estimate a pose for every scan and build the occupancy grid.
+
+    The grid integrates keyframes and every `integrate_every`-th scan (0: keyframes only);
+    degenerate poses are never integrated (their pose is only a prediction).
+    """
+    if params is None:
+        params = EstimatorParams(use_odometry=use_odometry)
+    elif params.use_odometry != use_odometry:
+        params = _replace_params(params, use_odometry=use_odometry)
+    estimator = ManhattanEstimator(params)
+    grid = OccupancyGrid(resolution_m)
+    run = MapRun(grid=grid)
+    since_integrated = 0
+    start = time.perf_counter()
+    bar = tqdm(
+        total=total,
+        disable=not progress,
+        unit="scan",
+        dynamic_ncols=True,
+        file=sys.stderr,
+        mininterval=0.25,
+    )
+    try:
+        for scan in scans:
+            laser = scan_to_laser(scan, use_odometry=use_odometry)
+            t0 = time.perf_counter_ns()
+            estimate = estimator.process(laser)
+            run.estimator_ns.append(time.perf_counter_ns() - t0)
+            run.stamps_ns.append(scan.stamp_ns)
+            run.estimates.append(estimate)
+            run.beam_counts.add(scan.beam_count)
+            run.with_odometry += laser.odom is not None
+            since_integrated += 1
+            usable = not estimate.flags & PoseFlag.DEGENERATE
+            due = integrate_every > 0 and since_integrated >= integrate_every
+            if usable and (estimate.is_keyframe or due or run.scans == 1):
+                t1 = time.perf_counter_ns()
+                grid.integrate(laser, estimate.pose)
+                run.integrate_ns.append(time.perf_counter_ns() - t1)
+                since_integrated = 0
+            if on_estimate is not None:
+                on_estimate(scan, estimate)
+            bar.update(1)
+            if run.scans % 50 == 0:
+                bar.set_postfix_str(f"q={estimate.quality:.2f}", refresh=False)
+    finally:
+        bar.close()
+    run.wall_s = time.perf_counter() - start
+    return run
+
+
+def _replace_params(params: EstimatorParams, **changes: Any) -> EstimatorParams:
+    values = asdict(params)
+    values.update(changes)
+    return EstimatorParams(**values)
+
+
+# ---------------------------------------------------------------------------------------------
+# Report and outputs
+
+
+def _percentile_ms(times_ns: Sequence[int], q: float) -> float | None:
+    if not times_ns:
+        return None
+    return round(float(np.percentile(np.asarray(times_ns, dtype=np.float64), q)) / 1e6, 4)
+
+
+def _flag_counts(estimates: Sequence[PoseEstimate]) -> dict[str, int]:
+    counts: dict[str, int] = {}
+    for flag in PoseFlag:
+        if flag is PoseFlag.NONE or flag.name is None:
+            continue
+        n = sum(1 for e in estimates if e.flags & flag)
+        counts[flag.name] = n
+    return counts
+
+
+def trajectory_length_m(poses: Sequence[Pose2D]) -> float:
+    if len(poses) < 2:
+        return 0.0
+    xy = np.array([(p.x_m, p.y_m) for p in poses], dtype=np.float64)
+    return float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum())
+
+
+def build_report(
+    run: MapRun,
+    *,
+    input_info: dict[str, Any] | None = None,
+    params: EstimatorParams | None = None,
+) -> dict[str, Any]:
+    """The `report.json` content of a run."""
+    quality: npt.NDArray[np.float64] = np.array([e.quality for e in run.estimates], dtype=float)
+    report: dict[str, Any] = {
+        "scans": run.scans,
+        "median_ms_per_scan": _percentile_ms(run.estimator_ns, 50),
+        "p90_ms_per_scan": _percentile_ms(run.estimator_ns, 90),
+        "p99_ms_per_scan": _percentile_ms(run.estimator_ns, 99),
+        "max_ms_per_scan": _percentile_ms(run.estimator_ns, 100),
+        "mean_ms_per_scan": (
+            round(float(np.mean(run.estimator_ns)) / 1e6, 4) if run.estimator_ns else None
+        ),
+        "median_ms_per_integrate": _percentile_ms(run.integrate_ns, 50),
+        "integrated_scans": len(run.integrate_ns),
+        "keyframes": sum(1 for e in run.estimates if e.is_keyframe),
+        "beam_counts": sorted(run.beam_counts),
+        "scans_with_odometry": run.with_odometry,
+        "quality": {
+            "mean": round(float(quality.mean()), 4) if quality.size else None,
+            "median": round(float(np.median(quality)), 4) if quality.size else None,
+            "min": round(float(quality.min()), 4) if quality.size else None,
+            "fraction_below_0_5": (
+                round(float(np.mean(quality < QUALITY_LOW)), 4) if quality.size else None
+            ),
+        },
+        "flags": _flag_counts(run.estimates),
+        "trajectory_length_m": round(trajectory_length_m(run.poses), 3),
+        "duration_s": (
+            round((run.stamps_ns[-1] - run.stamps_ns[0]) / 1e9, 3) if run.stamps_ns else 0.0
+        ),
+        "wall_time_s": round(run.wall_s, 3),
+        "scans_per_second": round(run.scans / run.wall_s, 1) if run.wall_s > 0 else None,
+    }
+    if input_info is not None:
+        report["input"] = input_info
+    if run.grid is not None:
+        image = run.grid.snapshot()
+        res_m = float(image.resolution_m)
+        report["map"] = {
+            "resolution_m": res_m,
+            "width_cells": image.width,
+            "height_cells": image.height,
+            "width_m": round(image.width * res_m, 3),
+            "height_m": round(image.height * res_m, 3),
+            "origin_m": [float(image.origin_x_m), float(image.origin_y_m)],
+            "known_cells": int(np.count_nonzero(image.occupancy >= 0)),
+        }
+    if params is not None:
+        report["estimator_params"] = asdict(params)
+    return report
+
+
+def write_outputs(
+    run: MapRun,
+    out_dir: str | Path,
+    *,
+    input_info: dict[str, Any] | None = None,
+    params: EstimatorParams | None = None,
+) -> dict[str, Any]:
+    """Write trajectory.tum, map.png, map.pgm, map.yaml and report.json; return the report."""
+    out = Path(out_dir)
+    if run.grid is None:
+        raise OfflineError("the run has no map")
+    image = run.grid.snapshot()
+    report = build_report(run, input_info=input_info, params=params)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        _write_text(out / "trajectory.tum", mapio.format_tum(run.stamps_ns, run.poses))
+        _write_bytes(
+            out / "map.png",
+            mapio.to_png(
+                image, trajectory=run.poses, robot_pose=run.poses[-1] if run.poses else None
+            ),
+        )
+        _write_bytes(out / "map.pgm", mapio.to_pgm(image))
+        _write_text(out / "map.yaml", mapio.to_yaml(image, image_file="map.pgm"))
+        _write_text(out / "report.json", json.dumps(report, indent=2, sort_keys=False) + "\n")
+    except OSError as err:
+        raise OfflineError(f"cannot write to {out}: {err.strerror or err}") from None
+    return report
+
+
+def _write_bytes(path: Path, data: bytes) -> None:
+    # Write then rename, so a reader never sees half a file.
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def _write_text(path: Path, text: str) -> None:
+    _write_bytes(path, text.encode("utf-8"))
+
+
+def input_summary(
+    info: LogInfo, *, scan_topic: str, odom_topic: str, use_odometry: bool
+) -> dict[str, Any]:
+    return {
+        "path": info.path,
+        "kind": info.kind,
+        "scan_topic": scan_topic if info.kind != "mrec" else None,
+        "odom_topic": odom_topic if info.kind != "mrec" else None,
+        "scan_count": info.scan_count,
+        "has_odometry": info.has_odom,
+        "use_odometry": use_odometry,
+        "duration_s": round(info.duration_s, 3),
+        "tolerant_reader": info.tolerant,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line
+
+
+def _fail(message: str) -> None:
+    first_line = message.strip().splitlines()[0] if message.strip() else "unknown error"
+    sys.stderr.write(f"mapping-service map: error: {first_line}\n")
+    sys.stderr.flush()
+
+
+def run_map(args: argparse.Namespace) -> int:
+    """`mapping-service map`: returns 0, 1 (output not writable) or 2 (input unreadable)."""
+    resolution_m = float(args.resolution)
+    if not (math.isfinite(resolution_m) and 0.005 <= resolution_m <= 10.0):
+        _fail(f"--resolution must be between 0.005 and 10 m, got {args.resolution}")
+        return EXIT_INPUT
+    use_odometry = not args.no_odom
+    try:
+        info = probe_log(args.input, scan_topic=args.scan_topic, odom_topic=args.odom_topic)
+        if info.scan_count == 0:
+            topics = ", ".join(sorted(info.topics)) or "none"
+            _fail(f"{args.input}: no scans on {args.scan_topic} (topics: {topics})")
+            return EXIT_INPUT
+        scans = iter_log_scans(
+            args.input,
+            scan_topic=args.scan_topic,
+            odom_topic=args.odom_topic,
+            use_odom=use_odometry,
+        )
+        params = EstimatorParams(use_odometry=use_odometry)
+        show_progress = not args.no_progress and sys.stderr.isatty()
+        run = map_scans(
+            scans,
+            resolution_m=resolution_m,
+            use_odometry=use_odometry,
+            params=params,
+            total=info.scan_count,
+            progress=show_progress,
+        )
+    except LogError as err:
+        _fail(str(err))
+        return EXIT_INPUT
+    if run.scans == 0:
+        _fail(f"{args.input}: no readable scans")
+        return EXIT_INPUT
+    summary = input_summary(
+        info, scan_topic=args.scan_topic, odom_topic=args.odom_topic, use_odometry=use_odometry
+    )
+    try:
+        report = write_outputs(run, args.out, input_info=summary, params=params)
+    except OfflineError as err:
+        _fail(str(err))
+        return EXIT_OUTPUT
+    log.info("wrote %s", args.out)
+    quality = report["quality"]
+    sys.stdout.write(
+        f"{report['scans']} scans, median {report['median_ms_per_scan']:.2f} ms/scan, "
+        f"mean quality {quality['mean']:.2f} ({100 * quality['fraction_below_0_5']:.1f}% "
+        f"below 0.5), {report['trajectory_length_m']:.1f} m travelled, "
+        f"map {report['map']['width_m']:.1f} x {report['map']['height_m']:.1f} m -> {args.out}\n"
+    )
+    return EXIT_OK
