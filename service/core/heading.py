@@ -1,0 +1,190 @@
+"""Heading against the major walls (paper §II): projection histograms over rotation angles.
+
+Convention: rotating the laser-frame points by the robot heading θ gives them the map's
+orientation. Walls parallel to the map axes then project onto a single histogram bin, so the
+rotation α that maximises the projection-histogram peak is the heading modulo 90° (Manhattan
+walls come in two perpendicular families; modulo 180° for one family). The absolute heading is
+the member of {α + k·90°} nearest to the prediction: the paper's ±45° rule.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import numpy.typing as npt
+
+from service.core.types import FloatArray
+
+QUARTER = math.pi / 2.0
+
+
+def thin_points(points_xy_m: FloatArray, spacing_m: float) -> FloatArray:
+    """Keep points so that consecutive kept points are roughly `spacing_m` apart (vectorised).
+
+    Walks the scan in beam order: a point is kept each time the cumulative path length along
+    the scan crosses a multiple of `spacing_m` (a range jump always starts a new point).
+    """
+    n = points_xy_m.shape[0]
+    if n < 2 or spacing_m <= 0.0:
+        return points_xy_m
+    steps = np.hypot(*np.diff(points_xy_m, axis=0).T)
+    cell = np.floor(np.concatenate(([0.0], np.cumsum(steps))) / spacing_m)
+    keep = np.empty(n, dtype=bool)
+    keep[0] = True
+    keep[1:] = cell[1:] != cell[:-1]
+    return points_xy_m[keep]
+
+
+def wrap_quarter(angle_rad: float | FloatArray) -> float | FloatArray:
+    """Wrap to [-45°, 45°)."""
+    return (angle_rad + QUARTER / 2.0) % QUARTER - QUARTER / 2.0
+
+
+def _projection_histograms(
+    points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float, soft: bool
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """Histograms of the rotated points' x and y coordinates, one row per angle.
+
+    Returns (hist_x, hist_y), each (K, B). `soft` splits each point between its two nearest
+    bins (linear interpolation), which makes the score smooth in the angle.
+    """
+    k = angles_rad.shape[0]
+    c = np.cos(angles_rad)
+    s = np.sin(angles_rad)
+    # Both coordinates of R(α)·p for every α as one matrix product: (M, 2K).
+    dirs = np.concatenate((np.stack((c, -s)), np.stack((s, c))), axis=1) / bin_m
+    proj = points_xy_m @ dirs
+    lo = math.floor(float(proj.min())) - 1
+    width = math.ceil(float(proj.max())) - lo + 2
+    proj -= lo  # now positive: truncation is floor
+    cols = np.arange(2 * k) * width
+    if soft:
+        i0 = proj.astype(np.int64)
+        frac = proj - i0
+        i0 += cols
+        h = np.bincount(i0.ravel(), weights=(1.0 - frac).ravel(), minlength=2 * k * width)
+        h += np.bincount((i0 + 1).ravel(), weights=frac.ravel(), minlength=2 * k * width)
+    else:
+        idx = proj.astype(np.int64) + cols
+        h = np.bincount(idx.ravel(), minlength=2 * k * width).astype(np.float64)
+    h2: FloatArray = np.asarray(h[: 2 * k * width], dtype=np.float64).reshape(2 * k, width)
+    return h2[:k], h2[k:]
+
+
+def heading_scores(
+    points_xy_m: FloatArray,
+    angles_rad: FloatArray,
+    bin_m: float,
+    score: str = "energy",
+    soft: bool = True,
+) -> FloatArray:
+    """Manhattan score of each candidate rotation.
+
+    "max": the paper's hmax(α) (largest bin of the x projection) plus the same for y, so that
+    both wall families count; "energy": Σ h² over both projections (pairs of points sharing a
+    bin), smoother and less sensitive to which single wall is longest.
+    """
+    hx, hy = _projection_histograms(points_xy_m, angles_rad, bin_m, soft=soft and score == "energy")
+    if score == "max":
+        return np.asarray(hx.max(axis=1) + hy.max(axis=1), dtype=np.float64)
+    return np.asarray(np.einsum("ij,ij->i", hx, hx) + np.einsum("ij,ij->i", hy, hy))
+
+
+def parabolic_offset(y_minus: float, y0: float, y_plus: float) -> float:
+    """Vertex of the parabola through three equally spaced samples, in steps, within ±0.5."""
+    denom = y_minus - 2.0 * y0 + y_plus
+    if denom >= 0.0:
+        return 0.0
+    return float(np.clip(0.5 * (y_minus - y_plus) / denom, -0.5, 0.5))
+
+
+@dataclass(frozen=True, slots=True)
+class HeadingMeasurement:
+    """The Manhattan angle of one scan."""
+
+    angle_rad: float  # in [-45°, 45°): heading modulo 90°
+    peak_fraction: float  # share of points on the strongest line of each family
+    contrast: float  # chosen coarse peak score relative to the median angle (≥ 1 when clear)
+    rival_ratio: float  # best other coarse peak / chosen peak (1 = two equal directions)
+    prior_offset_rad: float  # chosen angle minus predicted angle, wrapped to ±45°
+    major_axis: int  # 0 when the strongest wall is parallel to the map y axis, 1 for x
+
+
+def _circular_peaks(scores: FloatArray) -> npt.NDArray[np.int64]:
+    left = np.roll(scores, 1)
+    right = np.roll(scores, -1)
+    peaks = np.flatnonzero((scores >= left) & (scores > right))
+    if peaks.size == 0:
+        peaks = np.array([int(np.argmax(scores))])
+    return peaks.astype(np.int64)
+
+
+def measure_heading(
+    points_xy_m: FloatArray,
+    predicted_rad: float | None,
+    prior_sigma_rad: float,
+    step_rad: float,
+    bin_m: float,
+    *,
+    score: str = "energy",
+    coarse_step_rad: float = math.radians(1.0),
+    coarse_bin_m: float = 0.05,
+    fine_half_rad: float = math.radians(1.5),
+    refine: bool = True,
+    max_range_m: float = 12.0,
+) -> HeadingMeasurement:
+    """The Manhattan angle: coarse search over the whole 90°, fine search around one peak.
+
+    The coarse curve (`coarse_step_rad`, `coarse_bin_m`) covers every direction, so a badly
+    predicted heading cannot hide the true peak; among its local maxima the one with the best
+    score × Gaussian prior around the prediction wins (no prediction: the best score, the paper).
+    The fine search uses the paper's step and bin and a parabolic sub-step refinement.
+    """
+    r2 = points_xy_m[:, 0] ** 2 + points_xy_m[:, 1] ** 2
+    near = points_xy_m[r2 <= max_range_m**2]
+    pts = near if near.shape[0] >= 10 else points_xy_m
+    coarse = np.arange(-QUARTER / 2.0, QUARTER / 2.0, coarse_step_rad)
+    s_coarse = heading_scores(pts, coarse, coarse_bin_m, score, soft=False)
+    peaks = _circular_peaks(s_coarse)
+    if predicted_rad is None or prior_sigma_rad <= 0.0:
+        weight = s_coarse[peaks]
+        pred_q = 0.0
+    else:
+        pred_q = float(wrap_quarter(predicted_rad))
+        d = wrap_quarter(coarse[peaks] - pred_q)
+        weight = s_coarse[peaks] * np.exp(-0.5 * (np.asarray(d) / prior_sigma_rad) ** 2)
+    order = peaks[np.argsort(-weight)]
+    chosen = int(order[0])
+    by_score = peaks[np.argsort(-s_coarse[peaks])]
+    rivals = by_score[by_score != chosen]
+    rival_ratio = float(s_coarse[rivals[0]] / s_coarse[chosen]) if rivals.size else 0.0
+    median = float(np.median(s_coarse))
+    contrast = float(s_coarse[chosen]) / max(median, 1e-9)
+
+    n_half = max(1, round(fine_half_rad / step_rad))
+    angles = float(coarse[chosen]) + step_rad * np.arange(-n_half, n_half + 1, dtype=np.float64)
+    scores = heading_scores(pts, angles, bin_m, score)
+    i = int(np.argmax(scores))
+    offset = 0.0
+    if refine and 0 < i < len(angles) - 1:
+        offset = parabolic_offset(float(scores[i - 1]), float(scores[i]), float(scores[i + 1]))
+    best = float(wrap_quarter(float(angles[i]) + offset * step_rad))
+    hx, hy = _projection_histograms(pts, np.array([best]), bin_m, soft=False)
+    mx, my = float(hx.max()), float(hy.max())
+    n = max(1, pts.shape[0])
+    return HeadingMeasurement(
+        angle_rad=best,
+        peak_fraction=(mx + my) / n,
+        contrast=contrast,
+        rival_ratio=rival_ratio,
+        prior_offset_rad=float(wrap_quarter(best - pred_q)) if predicted_rad is not None else 0.0,
+        major_axis=0 if mx >= my else 1,
+    )
+
+
+def resolve_heading(manhattan_rad: float, predicted_rad: float) -> float:
+    """The member of {manhattan + k·90°} nearest to the prediction (the ±45° rule)."""
+    k = round((predicted_rad - manhattan_rad) / QUARTER)
+    return manhattan_rad + k * QUARTER

@@ -1,0 +1,63 @@
+"""Parameters of the Manhattan estimator.
+
+The first block is the paper's method with its published values (Sawamura-style projection
+histograms, IROS 2010, see `docs/estimator.md`); the second block is what we added because real
+data needs it. Every addition can be switched off, which is how `docs/estimator.md` measures
+each step's effect.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+ReferenceMode = Literal["previous", "keyframe", "local_map"]
+HeadingScore = Literal["max", "energy"]
+
+
+@dataclass(frozen=True, slots=True)
+class EstimatorParams:
+    # --- the paper (§II, §III) -------------------------------------------------------------
+    thinning_m: float = 0.05  # keep points roughly this far apart along the scan
+    heading_step_deg: float = 0.1  # rotation step of the projection-histogram search
+    heading_bin_m: float = 0.02  # histogram bin of the heading search
+    heading_switch_deg: float = 45.0  # a jump beyond this means the major wall changed
+    translation_bin_m: float = 0.03  # histogram bin of the translation correlation
+    translation_step_m: float = 0.005  # shift step of the correlation
+    translation_window_m: float = 0.8  # ± search window of the correlation (no prediction)
+
+    # --- beyond the paper -----------------------------------------------------------------
+    use_odometry: bool = True  # odometry (when the scan carries it) is the motion prior
+    use_prediction: bool = True  # centre the searches on a motion prediction
+    heading_score: HeadingScore = "energy"  # "max" = the paper's hmax(θ); "energy" = Σ h²
+    heading_prior_sigma_deg: float = 10.0  # trust in a constant-velocity heading prediction
+    heading_prior_sigma_odom_deg: float = 4.0  # trust in an odometry heading prediction
+    heading_max_offset_sigmas: float = 3.0  # farther from the prediction: NON_MANHATTAN
+    heading_coarse_step_deg: float = 1.0  # coarse 90° search step (then the paper's 0.1°)
+    heading_coarse_bin_m: float = 0.05
+    heading_max_range_m: float = 12.0  # heading uses the points within this range
+    max_speed_m_s: float = 2.0  # clamp of the constant-velocity model
+    max_turn_rate_deg_s: float = 120.0
+    translation_window_pred_m: float = 0.4  # ± translation search around the prediction
+    translation_window_odom_m: float = 0.25  # ± around an odometry prediction
+    translation_prior_sigma_m: float = 0.1  # trust in a constant-velocity prediction (0: none)
+    translation_prior_sigma_odom_m: float = 0.06  # trust in an odometry prediction
+    subbin_refinement: bool = True  # parabolic peak refinement (heading and translation)
+    orientation_weighting: bool = True  # wall points vote only on the axis they constrain
+    reference: ReferenceMode = "local_map"
+    keyframe_distance_m: float = 0.3  # the paper's scan spacing, reused for keyframes
+    keyframe_angle_deg: float = 10.0
+    local_map_keyframes: int = 12  # keyframes kept in the local map
+    local_map_radius_m: float = 12.0  # reference points farther than this are ignored
+    direction_prior: bool = True  # relative rotation from surface-direction histograms
+    direction_window_deg: float = 20.0  # ± search of that rotation around the prediction
+    direction_sigma_deg: float = 2.0  # trust in it as the Manhattan heading's prior
+    direction_min_contrast: float = 0.1
+    refine_2d: bool = True  # joint 2-D check of the 1-D peak candidates
+
+    # --- degeneracy / ambiguity thresholds --------------------------------------------------
+    min_points: int = 20  # fewer valid points than this: DEGENERATE
+    min_axis_support: float = 8.0  # weighted points constraining an axis, else AMBIGUOUS
+    ambiguity_ratio: float = 0.92  # a second peak this high (relative) means ambiguous
+    min_heading_peak_fraction: float = 0.08  # share of points on the major lines
+    max_range_used_m: float = 30.0  # the heading/translation ignore points beyond this

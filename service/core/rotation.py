@@ -1,0 +1,82 @@
+"""Relative rotation from angle histograms: the heading where the Manhattan walls fail.
+
+Every point gets the direction of the local surface (modulo 180°) from its scan neighbours. The
+histogram of those directions in the map frame (from the local map) is matched against the
+current scan's directions rotated by candidate headings. Unlike the projection-histogram heading
+(paper §II), this works for any structure (clutter, oblique walls), but it is relative: errors
+accumulate. The estimator uses it as a sharp prediction for the Manhattan heading, and instead of
+it when no Manhattan wall is consistent with the motion.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from service.core.heading import parabolic_offset
+from service.core.types import FloatArray
+
+_BIN_RAD = math.radians(0.5)
+_N_BINS = round(math.pi / _BIN_RAD)
+_SMOOTH = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)  # σ = 1°
+
+
+def tangent_directions(
+    points_xy_m: FloatArray, max_gap_m: float = 0.3
+) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+    """Surface direction (radians, modulo π) of every point and whether it is reliable."""
+    m = points_xy_m.shape[0]
+    ang = np.zeros(m)
+    ok = np.zeros(m, dtype=bool)
+    if m < 5:
+        return ang, ok
+    d = points_xy_m[4:] - points_xy_m[:-4]
+    near = np.hypot(*np.diff(points_xy_m, axis=0).T) < max_gap_m
+    good = near[:-3] & near[1:-2] & near[2:-1] & near[3:]
+    ang[2:-2] = np.arctan2(d[:, 1], d[:, 0]) % math.pi
+    ok[2:-2] = good
+    return ang, ok
+
+
+def direction_histogram(directions_rad: FloatArray) -> FloatArray:
+    """Smoothed circular histogram (modulo π) of surface directions."""
+    idx = np.floor((directions_rad % math.pi) / _BIN_RAD).astype(np.int64) % _N_BINS
+    h = np.bincount(idx, minlength=_N_BINS).astype(np.float64)
+    padded = np.concatenate((h[-6:], h, h[:6]))
+    return np.asarray(np.convolve(padded, _SMOOTH, mode="valid"), dtype=np.float64)
+
+
+def match_rotation(
+    ref_hist: FloatArray,
+    cur_directions_rad: FloatArray,
+    predicted_rad: float,
+    half_window_rad: float,
+) -> tuple[float, float]:
+    """Heading that best aligns the current directions with the reference histogram.
+
+    Returns (heading_rad, contrast) where contrast in [0, 1] compares the peak with the mean
+    of the window (0 = flat).
+    """
+    # Circular cross-correlation of the two direction histograms (all shifts at once), then
+    # the window around the prediction and a parabolic sub-bin peak.
+    cur_hist = direction_histogram(cur_directions_rad)
+    corr = np.fft.irfft(np.fft.rfft(ref_hist) * np.conj(np.fft.rfft(cur_hist)), n=_N_BINS)
+    # corr[k] = Σ_i ref[i + k] · cur[i]: the current directions rotated by k bins.
+    n_half = max(1, round(half_window_rad / _BIN_RAD))
+    centre = predicted_rad / _BIN_RAD
+    c0 = round(centre)
+    ks = c0 + np.arange(-n_half, n_half + 1)
+    score = corr[ks % _N_BINS]
+    i = int(np.argmax(score))
+    offset = 0.0
+    if 0 < i < len(ks) - 1:
+        offset = parabolic_offset(float(score[i - 1]), float(score[i]), float(score[i + 1]))
+    peak = float(score[i])
+    contrast = (peak - float(score.mean())) / peak if peak > 0.0 else 0.0
+    at_edge = i in (0, len(ks) - 1)
+    theta = (float(ks[i]) + offset) * _BIN_RAD
+    # Back to the branch of the prediction (the histogram is modulo 180°).
+    theta = predicted_rad + ((theta - predicted_rad + math.pi / 2.0) % math.pi - math.pi / 2.0)
+    return theta, (0.0 if at_edge else contrast)

@@ -1,0 +1,242 @@
+"""Known-answer tests of the estimator on tiny ray-cast worlds built here."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from clients.wire import PoseFlag
+from service.core.estimator import ManhattanEstimator
+from service.core.heading import measure_heading, resolve_heading, thin_points, wrap_quarter
+from service.core.params import EstimatorParams
+from service.core.types import LaserScan, Pose2D, wrap_angle
+
+Segments = np.ndarray  # (S, 4): x0, y0, x1, y1
+
+
+def box(x0: float, y0: float, x1: float, y1: float) -> list[tuple[float, float, float, float]]:
+    return [(x0, y0, x1, y0), (x1, y0, x1, y1), (x1, y1, x0, y1), (x0, y1, x0, y0)]
+
+
+def room() -> Segments:
+    """A 10 m × 6 m room with a pillar and a cupboard, so both axes are constrained."""
+    segs = box(-5.0, -3.0, 5.0, 3.0) + box(1.0, 0.8, 1.4, 1.2) + box(-3.5, -3.0, -2.0, -2.4)
+    segs += [(2.5, -3.0, 2.5, -1.8)]  # a partition stub
+    return np.array(segs, dtype=np.float64)
+
+
+def l_corridor() -> Segments:
+    """A corridor along x (y in ±1, x from -12 to 1) turning left into one along y."""
+    segs = [
+        (-12.0, -1.0, 1.0, -1.0),
+        (1.0, -1.0, 1.0, 14.0),
+        (-12.0, 1.0, -1.0, 1.0),
+        (-1.0, 1.0, -1.0, 14.0),
+        (-12.0, -1.0, -12.0, 1.0),
+        (-1.0, 14.0, 1.0, 14.0),
+    ]
+    # Door recesses so that the corridors are not perfectly featureless along their axis.
+    for x in (-9.0, -6.0, -3.0):
+        segs += [(x, 1.0, x, 1.3), (x, 1.3, x + 0.9, 1.3), (x + 0.9, 1.3, x + 0.9, 1.0)]
+    for y in (4.0, 7.0, 10.0):
+        segs += [(1.0, y, 1.3, y), (1.3, y, 1.3, y + 0.9), (1.3, y + 0.9, 1.0, y + 0.9)]
+    return np.array(segs, dtype=np.float64)
+
+
+def cast(
+    segs: Segments,
+    pose: Pose2D,
+    *,
+    fov_deg: float = 270.0,
+    beams: int = 1081,
+    range_max_m: float = 30.0,
+    noise_m: float = 0.0,
+    rng: np.random.Generator | None = None,
+    stamp_ns: int = 0,
+) -> LaserScan:
+    """Ray-cast `segs` from `pose` (laser frame = robot frame)."""
+    inc = math.radians(fov_deg) / (beams - 1)
+    a_min = -math.radians(fov_deg) / 2.0
+    ang = pose.theta_rad + a_min + inc * np.arange(beams)
+    d = np.stack((np.cos(ang), np.sin(ang)), axis=1)  # (B, 2)
+    p0 = segs[:, :2]
+    e = segs[:, 2:] - p0  # (S, 2)
+    w = p0 - np.array([pose.x_m, pose.y_m])  # (S, 2)
+    # Solve pose + t·d = p0 + u·e for every (beam, segment).
+    den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (w[None, :, 0] * e[None, :, 1] - w[None, :, 1] * e[None, :, 0]) / den
+        u = (w[None, :, 0] * d[:, None, 1] - w[None, :, 1] * d[:, None, 0]) / den
+    hit = (np.abs(den) > 1e-12) & (t > 0.0) & (u >= 0.0) & (u <= 1.0)
+    r = np.where(hit, t, np.inf).min(axis=1)
+    if noise_m > 0.0 and rng is not None:
+        r = r + rng.normal(0.0, noise_m, r.shape)
+    r = np.where(np.isfinite(r) & (r < range_max_m), r, range_max_m)
+    return LaserScan(stamp_ns, a_min, inc, r, 0.02, range_max_m)
+
+
+def test_thinning_spacing() -> None:
+    pts = np.column_stack((np.linspace(0.0, 5.0, 1001), np.zeros(1001)))
+    thin = thin_points(pts, 0.05)
+    gaps = np.diff(thin[:, 0])
+    assert 95 <= thin.shape[0] <= 105
+    assert np.all(gaps > 0.04)
+    assert np.all(gaps < 0.06)
+
+
+@pytest.mark.parametrize("heading_deg", list(range(0, 360, 7)))
+def test_manhattan_angle_every_7_degrees(heading_deg: int) -> None:
+    truth = math.radians(heading_deg)
+    scan = cast(room(), Pose2D(0.3, -0.4, truth))
+    m = measure_heading(scan.points_xy_m(), None, 0.0, math.radians(0.1), 0.02)
+    # Rotating laser points by the heading aligns them with the map: angle ≡ heading mod 90°.
+    err = math.degrees(float(wrap_quarter(m.angle_rad - truth)))
+    assert abs(err) < 0.2
+
+
+def test_heading_tracked_through_full_turn() -> None:
+    """Rotating in place 7° per scan: the ±45° rule keeps the absolute heading for 360°."""
+    est = ManhattanEstimator()
+    segs = room()
+    first = math.radians(3.0)
+    for k in range(53):
+        truth = first + math.radians(7.0 * k)
+        out = est.process(cast(segs, Pose2D(0.3, -0.4, truth), stamp_ns=k * 100_000_000))
+        assert abs(math.degrees(wrap_angle(out.theta_rad - truth))) < 0.2, k
+        assert math.hypot(out.x_m, out.y_m) < 0.02, k  # 53 chained matches
+
+
+def test_resolve_heading_switch_rule() -> None:
+    q = math.pi / 2.0
+    assert resolve_heading(math.radians(40.0), math.radians(44.0)) == pytest.approx(
+        math.radians(40.0)
+    )
+    # Relative wall angle jumps from +44° to -44°: the wall is the perpendicular one now.
+    assert resolve_heading(math.radians(-44.0), math.radians(44.0)) == pytest.approx(
+        math.radians(-44.0) + q
+    )
+    assert resolve_heading(math.radians(10.0), math.radians(185.0)) == pytest.approx(
+        math.radians(190.0)
+    )
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_known_translation_within_1cm(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    segs = room()
+    theta = math.radians(rng.uniform(-30.0, 30.0))
+    start = Pose2D(-0.5, 0.2, theta)
+    dx, dy = rng.uniform(-0.35, 0.35, size=2)
+    est = ManhattanEstimator()
+    est.process(cast(segs, start, stamp_ns=0))
+    out = est.process(cast(segs, Pose2D(start.x_m + dx, start.y_m + dy, theta), stamp_ns=10**8))
+    assert math.hypot(out.x_m - dx, out.y_m - dy) < 0.01, (out.pose, dx, dy)
+    assert abs(math.degrees(out.theta_rad - theta)) < 0.2
+
+
+def test_translation_paper_mode_full_window() -> None:
+    """The literal paper settings (no prediction, previous scan) recover a 0.3 m move too."""
+    params = EstimatorParams(
+        use_prediction=False,
+        reference="previous",
+        refine_2d=False,
+        orientation_weighting=False,
+        heading_score="max",
+    )
+    segs = room()
+    est = ManhattanEstimator(params)
+    est.process(cast(segs, Pose2D(0.0, 0.0, 0.1), stamp_ns=0))
+    out = est.process(cast(segs, Pose2D(0.02, 0.3, 0.1), stamp_ns=10**8))
+    assert math.hypot(out.x_m - 0.02, out.y_m - 0.3) < 0.015
+
+
+def test_l_corridor_heading_switch() -> None:
+    """Down a corridor along x, turn left into one along y: the major wall changes family."""
+    segs = l_corridor()
+    est = ManhattanEstimator()
+    rng = np.random.default_rng(1)
+    poses = [Pose2D(-10.0 + 0.3 * i, 0.0, 0.0) for i in range(34)]  # to x = -0.1
+    poses += [Pose2D(0.0, 0.0, math.radians(10.0 * k)) for k in range(1, 10)]
+    poses += [Pose2D(0.0, 0.3 * i, math.pi / 2.0) for i in range(1, 35)]
+    flags = PoseFlag.NONE
+    for k, truth in enumerate(poses):
+        scan = cast(segs, truth, noise_m=0.01, rng=rng, stamp_ns=k * 200_000_000)
+        out = est.process(scan)
+        flags |= out.flags
+        assert abs(math.degrees(wrap_angle(out.theta_rad - truth.theta_rad))) < 0.5, k
+        rel = Pose2D(truth.x_m - poses[0].x_m, truth.y_m - poses[0].y_m, 0.0)
+        assert math.hypot(out.x_m - rel.x_m, out.y_m - rel.y_m) < 0.15, (k, out.pose, rel)
+    assert flags & PoseFlag.HEADING_SWITCH
+
+
+def test_corridor_is_flagged_ambiguous() -> None:
+    segs = np.array([(-50.0, -1.0, 50.0, -1.0), (-50.0, 1.0, 50.0, 1.0)])
+    est = ManhattanEstimator()
+    est.process(cast(segs, Pose2D(0.0, 0.0, 0.0), stamp_ns=0))
+    out = est.process(cast(segs, Pose2D(0.3, 0.1, 0.0), stamp_ns=10**8))
+    assert out.flags & PoseFlag.AMBIGUOUS_X
+    assert not out.flags & PoseFlag.AMBIGUOUS_Y
+    assert abs(out.y_m - 0.1) < 0.01
+    assert out.quality < 0.9
+
+
+def _degenerate_scans() -> list[LaserScan]:
+    inc = math.radians(0.25)
+    full = cast(room(), Pose2D(0.0, 0.0, 0.0))
+    three = np.full(1081, 30.0)
+    three[[10, 500, 900]] = 2.0
+    return [
+        LaserScan(1, -2.35, inc, np.empty(0), 0.02, 30.0),
+        LaserScan(2, -2.35, inc, three, 0.02, 30.0),
+        LaserScan(3, -2.35, inc, np.full(1081, 30.0), 0.02, 30.0),
+        LaserScan(4, -2.35, inc, np.full(1081, np.nan), 0.02, 30.0),
+        LaserScan(
+            5, -2.35, inc, np.where(np.arange(1081) % 2 == 0, np.nan, full.ranges_m), 0.02, 30.0
+        ),
+        LaserScan(6, math.nan, inc, full.ranges_m, 0.02, 30.0),
+        LaserScan(7, -2.35, inc, np.full(1081, np.inf), 0.02, 30.0),
+        LaserScan(8, -2.35, inc, np.zeros(1081), 0.02, 30.0),
+    ]
+
+
+@pytest.mark.parametrize("initialised", [False, True])
+def test_degenerate_inputs_are_flagged_not_raised(initialised: bool) -> None:
+    est = ManhattanEstimator()
+    if initialised:
+        est.process(cast(room(), Pose2D(0.0, 0.0, 0.0), stamp_ns=0))
+    for scan in _degenerate_scans():
+        out = est.process(scan)
+        assert 0.0 <= out.quality <= 1.0
+        if scan.stamp_ns != 5:  # half the beams of a good scan is still a good scan
+            assert out.flags & PoseFlag.DEGENERATE, scan.stamp_ns
+            assert out.quality == 0.0
+        assert all(math.isfinite(v) for v in out.pose)
+
+
+def test_odometry_prior_flag_and_reset() -> None:
+    segs = room()
+    est = ManhattanEstimator()
+    s0 = cast(segs, Pose2D(0.0, 0.0, 0.0), stamp_ns=0)
+    s1 = cast(segs, Pose2D(0.2, 0.1, 0.05), stamp_ns=10**8)
+    est.process(
+        LaserScan(
+            0,
+            s0.angle_min_rad,
+            s0.angle_increment_rad,
+            s0.ranges_m,
+            0.02,
+            30.0,
+            Pose2D(5.0, 5.0, 1.0),
+        )
+    )
+    odom1 = Pose2D(5.0, 5.0, 1.0).compose(Pose2D(0.2, 0.1, 0.05))
+    out = est.process(
+        LaserScan(10**8, s1.angle_min_rad, s1.angle_increment_rad, s1.ranges_m, 0.02, 30.0, odom1)
+    )
+    assert out.flags & PoseFlag.ODOMETRY_PRIOR
+    assert math.hypot(out.x_m - 0.2, out.y_m - 0.1) < 0.01
+    est.reset()
+    again = est.process(s1)
+    assert again.pose == pytest.approx((0.0, 0.0, 0.05), abs=2e-3)
