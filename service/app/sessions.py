@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
+import pickle
 import threading
 import time
 from collections.abc import Callable
@@ -39,6 +40,7 @@ from service.app.store import (
     SessionStore,
     check_id,
     new_session_id,
+    write_atomic,
 )
 from service.core.types import LaserScan, Pose2D, PoseEstimate
 
@@ -111,7 +113,30 @@ class SessionInfo:
     last_pose: Pose | None
 
 
+@dataclass(frozen=True, slots=True)
+class _Checkpoint:
+    """Estimator and grid after the first `records` records of recording epoch `epoch`.
+
+    A checkpoint only shortens a restart: the recording stays the source of truth, and a
+    checkpoint that does not match it is ignored (full replay).
+    """
+
+    epoch: int
+    records: int
+    scans_accepted: int
+    map_revision: int
+    estimator: Estimator
+    grid: Grid
+
+
+CHECKPOINT_FILE = "checkpoint.pickle"
+
+
 class MappingSession:
+    # A restart replays only the scans after the last checkpoint; one a minute at 40 Hz
+    # bounds that replay to about a minute of estimator time.
+    checkpoint_every_scans = 2400
+
     def __init__(self, store: SessionStore, engine: Engine) -> None:
         meta = store.meta
         self.id = meta.id
@@ -130,6 +155,8 @@ class MappingSession:
         self.estimator_errors = 0
         self.map_revision = 0
         self._image_cache: tuple[Any, int] | None = None
+        self._records = 0  # records in the current recording epoch
+        self._checkpoint_scans = 0  # scans_accepted at the last checkpoint
 
     @property
     def state(self) -> SessionState:
@@ -151,11 +178,15 @@ class MappingSession:
             if not self.is_active:
                 return False, None
             self._store.append(payload)  # durable before it counts
+            self._records += 1
             self.scans_accepted += 1
             pose = self._estimate(scan)
             if pose is not None:
                 self._store.append(encode_pose(pose))
+                self._records += 1
                 self._poses.append(pose)
+            if self.scans_accepted - self._checkpoint_scans >= self.checkpoint_every_scans:
+                self._write_checkpoint()
             return True, pose
 
     def _estimate(self, scan: Scan) -> Pose | None:
@@ -192,15 +223,70 @@ class MappingSession:
 
     # -- recovery -------------------------------------------------------------------------
 
+    def _write_checkpoint(self) -> None:
+        """Persist estimator and grid (lock held); the recording is fsynced first so that a
+        checkpoint never refers to records a power loss could take back."""
+        checkpoint = _Checkpoint(
+            epoch=self._store.meta.epoch,
+            records=self._records,
+            scans_accepted=self.scans_accepted,
+            map_revision=self.map_revision,
+            estimator=self._estimator,
+            grid=self._grid,
+        )
+        try:
+            self._store.sync()
+            data = pickle.dumps(checkpoint, protocol=pickle.HIGHEST_PROTOCOL)
+            write_atomic(self._store.directory / CHECKPOINT_FILE, data)
+        except (OSError, pickle.PicklingError, TypeError) as err:
+            log.warning("session %s: checkpoint not written: %s", self.id, err)
+        self._checkpoint_scans = self.scans_accepted
+
+    def _load_checkpoint(self) -> _Checkpoint | None:
+        """The session's checkpoint if it matches the recording, else None (full replay)."""
+        path = self._store.directory / CHECKPOINT_FILE
+        if not path.exists():
+            return None
+        try:
+            # The data directory is this service's own state, as trusted as its code.
+            checkpoint = pickle.loads(path.read_bytes())
+        except Exception as err:  # any unpickling failure (e.g. after an upgrade)
+            log.warning("session %s: checkpoint unreadable, replaying all: %s", self.id, err)
+            return None
+        if not isinstance(checkpoint, _Checkpoint) or checkpoint.epoch != self._store.meta.epoch:
+            return None
+        if sum(1 for _ in self._store.records()) < checkpoint.records:
+            log.warning("session %s: checkpoint ahead of the recording, replaying all", self.id)
+            return None
+        return checkpoint
+
     def replay(self) -> None:
-        """Rebuild estimator, grid, counters and trajectory from the recording."""
+        """Rebuild estimator, grid, counters and trajectory from the recording.
+
+        Records covered by the checkpoint only restore counters and the trajectory; the
+        estimator runs on the records after it.
+        """
         pending: Pose | None = None  # recomputed pose of the last scan, until its record comes
         mismatches = 0
         undecodable = 0
         with self.lock:
-            for record in self._store.records():
+            checkpoint = self._load_checkpoint()
+            skip = 0
+            if checkpoint is not None:
+                self._estimator = checkpoint.estimator
+                self._grid = checkpoint.grid
+                self.map_revision = checkpoint.map_revision
+                skip = checkpoint.records
+            for index, record in enumerate(self._store.records()):
+                self._records += 1
                 kind = record.kind
                 try:
+                    if index < skip:
+                        if kind == "scan":
+                            self.scans_accepted += 1
+                        elif kind == "pose":
+                            self._poses.append(decode_pose(record.payload))
+                        continue
                     if kind == "scan":
                         if pending is not None:
                             self._poses.append(pending)
@@ -228,6 +314,8 @@ class MappingSession:
                 self._store.open_for_append()
                 if tail_repaired and pending is not None:
                     self._store.append(encode_pose(pending))
+                    self._records += 1
+            self._checkpoint_scans = checkpoint.scans_accepted if checkpoint is not None else 0
         if mismatches or undecodable:
             log.warning(
                 "session %s: replay found %d pose mismatches and %d unreadable records",
@@ -249,6 +337,7 @@ class MappingSession:
     def stop(self) -> None:
         with self.lock:
             if self.state == "active":
+                self._checkpoint_if_behind()
                 self._store.close_writer()
                 self._store.set_state("stopped")
 
@@ -263,6 +352,9 @@ class MappingSession:
             self._poses = []
             self.scans_accepted = 0
             self.map_revision += 1
+            self._records = 0
+            self._checkpoint_scans = 0
+            (self._store.directory / CHECKPOINT_FILE).unlink(missing_ok=True)
 
     def delete(self, trash_dir: Any) -> None:
         with self.lock:
@@ -274,7 +366,14 @@ class MappingSession:
 
     def close(self) -> None:
         with self.lock:
+            if self.state == "active" and not self._deleted:
+                self._checkpoint_if_behind()
             self._store.close_writer()
+
+    def _checkpoint_if_behind(self) -> None:
+        """A checkpoint at a clean stop or shutdown makes the next start instant (lock held)."""
+        if self.scans_accepted > self._checkpoint_scans:
+            self._write_checkpoint()
 
     # -- reads ----------------------------------------------------------------------------
 

@@ -23,6 +23,7 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
 
 from clients.keyexpr import scan_key
 from clients.recording import RecordingWriter, iter_raw_records
+from clients.wire import Pose, Scan
 from service.app.errors import StoreError
 from service.app.runtime import MappingRuntime
 from service.app.sessions import MappingSession
@@ -101,6 +102,41 @@ def test_crash_image_with_torn_tail_and_missing_pose(
     assert restored.trajectory()[:25] == session.trajectory()
     kinds = [r.kind for r in iter_raw_records(copy_rec)]
     assert kinds == ["scan", "pose"] * 26  # torn tail cut, missing pose recorded
+
+
+def test_restart_from_checkpoint_replays_only_the_tail(
+    tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A checkpoint every 10 scans: a crash after 25 re-estimates only the last 5."""
+    monkeypatch.setattr(MappingSession, "checkpoint_every_scans", 10)
+    data = tmp_path / "data"
+    live = runtime_factory(data)
+    session = live.sessions.create("r1", 0.05, True)
+    robot = SimRobot("r1")
+    feed(live, robot, 25)
+    crash = tmp_path / "crash"
+    shutil.copytree(data, crash)  # a kill -9 image: checkpoint at scan 20, 5 scans after it
+    live.close()
+
+    estimated: list[int] = []
+    original = MappingSession._estimate
+
+    def counting(self: MappingSession, scan: Scan) -> Pose | None:
+        estimated.append(scan.seq)
+        return original(self, scan)
+
+    monkeypatch.setattr(MappingSession, "_estimate", counting)
+    second = runtime_factory(crash)
+    assert len(estimated) == 5
+    assert_same_session(session, second.sessions.get(session.id))
+    second.close()  # a clean shutdown checkpoints the rest
+    estimated.clear()
+    runtime_factory(crash).close()
+    assert estimated == []
+    # A checkpoint that does not match the recording is ignored, never trusted.
+    (crash / "sessions" / session.id / "checkpoint.pickle").write_bytes(b"not a pickle")
+    assert_same_session(session, runtime_factory(crash).sessions.get(session.id))
+    assert len(estimated) == 25
 
 
 def test_reset_survives_restart_and_stale_epochs_go(
