@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clients.wire import PoseFlag
-from service.core.heading import measure_heading, resolve_heading, thin_points
+from service.core.heading import QUARTER, measure_heading, resolve_heading, thin_points
 from service.core.params import EstimatorParams
 from service.core.refine import OccupiedCells
 from service.core.rotation import direction_histogram, match_rotation, tangent_directions
@@ -69,6 +69,8 @@ class ManhattanEstimator:
         self._grid: OccupiedCells | None = None
         self._grid_dirty = True
         self._dir_hist: FloatArray | None = None
+        # Local map as one array pair, rebuilt only when a keyframe is added (speed).
+        self._local_map: tuple[FloatArray, FloatArray] | None = None
 
     # ------------------------------------------------------------------ public
     def process(self, scan: LaserScan) -> PoseEstimate:
@@ -110,10 +112,21 @@ class ManhattanEstimator:
             return self._pose.compose(delta), PoseFlag.ODOMETRY_PRIOR
         if not p.use_prediction or self._velocity is None or self._stamp_ns is None:
             return self._pose, PoseFlag.NONE
-        dt = (scan.stamp_ns - self._stamp_ns) * 1e-9
+        dt = self._dt_s(scan)
         dt = min(max(dt, 0.0), 1.0)
         v = self._velocity
         return self._pose.compose(Pose2D(v.x_m * dt, v.y_m * dt, v.theta_rad * dt)), PoseFlag.NONE
+
+    def _dt_s(self, scan: LaserScan) -> float:
+        """Time since the previous scan for the motion model (a nominal period per scan).
+
+        Logged stamps can be bursty (Intel: 1 ms to 1.5 s between consecutive scans), which
+        makes a constant velocity in time useless; constant motion per scan is robust to that.
+        """
+        if self.params.scan_period_s > 0.0:
+            return self.params.scan_period_s
+        assert self._stamp_ns is not None
+        return (scan.stamp_ns - self._stamp_ns) * 1e-9
 
     def _process(self, scan: LaserScan) -> PoseEstimate:
         p = self.params
@@ -189,6 +202,16 @@ class ManhattanEstimator:
         else:
             theta = pred.theta_rad
             heading_quality = 0.3
+        if predicted and p.heading_check and not odom_prior and self._grid_ready():
+            checked = self._check_heading(pts, pred, theta, heading_ok, meas.angle_rad)
+            if checked is not None:
+                theta, absolute = checked
+                if absolute and not heading_ok:
+                    flags &= ~(PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL)
+                    heading_ok, heading_quality = True, 1.0
+                elif not absolute and heading_ok:
+                    flags |= PoseFlag.NON_MANHATTAN
+                    heading_ok, heading_quality = False, 0.6
 
         # --- translation (paper §III) --------------------------------------------------
         cur = _rotate(pts, theta)
@@ -253,6 +276,85 @@ class ManhattanEstimator:
             q *= 0.7
         return self._commit(scan, Pose2D(x, y, wrap_angle(theta)), q, flags, pts)
 
+    # ------------------------------------------------------------------ heading check
+    def _check_heading(
+        self,
+        pts: FloatArray,
+        pred: Pose2D,
+        theta: float,
+        heading_ok: bool,
+        manhattan_rad: float,
+    ) -> tuple[float, bool] | None:
+        """Re-anchor the heading: the candidate that best fits the local map's geometry.
+
+        The Manhattan angle is absolute modulo 90°; only its quadrant (and, after a wrong
+        prediction, the peak itself) can be lost. Candidates: the members of the measured and
+        of the strongest (prior-free, the paper's) Manhattan family within reach of the previous
+        heading, plus the prediction. Each is scored by the share of scan points on occupied
+        local-map cells over a coarse translation grid, which does not depend on the Manhattan
+        prior. Returns (heading, is_manhattan) when another candidate is clearly better.
+        """
+        p = self.params
+        assert self._grid is not None
+        prev = self._pose.theta_rad
+        reach = math.radians(p.heading_check_max_turn_deg)
+        turn = max(abs(wrap_angle(theta - prev)), abs(wrap_angle(pred.theta_rad - prev)))
+        # Cheap trigger: steady motion on a confident Manhattan heading needs no check.
+        if heading_ok and turn < math.radians(p.heading_check_min_turn_deg):
+            return None
+        free = measure_heading(
+            pts,
+            None,
+            0.0,
+            math.radians(p.heading_step_deg),
+            p.heading_bin_m,
+            score=p.heading_score,
+            coarse_step_rad=math.radians(p.heading_coarse_step_deg),
+            coarse_bin_m=p.heading_coarse_bin_m,
+            refine=p.subbin_refinement,
+            max_range_m=p.heading_max_range_m,
+        )
+        cands: list[tuple[float, bool]] = [(theta, heading_ok)]
+        angles = [manhattan_rad]
+        if free.peak_fraction >= p.min_heading_peak_fraction:
+            angles.append(free.angle_rad)
+        # Both the motion prediction and "no turn" (the prediction can overshoot a turn).
+        anchors = (pred.theta_rad, prev)
+
+        def offset(c: float) -> float:
+            return min(abs(wrap_angle(c - a)) for a in anchors)
+
+        for a in angles:
+            base = resolve_heading(a, prev)
+            for k in (-1, 0, 1, 2):
+                c = base + k * QUARTER
+                if offset(c) <= reach:
+                    cands.append((c, True))
+        cands.extend((a, False) for a in anchors)
+        uniq: list[tuple[float, bool]] = []
+        for c, absolute in cands:
+            if all(abs(wrap_angle(c - u)) > math.radians(0.5) for u, _ in uniq):
+                uniq.append((c, absolute))
+        if len(uniq) == 1:
+            return None
+        step = max(1, pts.shape[0] // p.heading_check_points)
+        sub = pts[::step]
+        n = max(1, round(p.heading_check_window_m / p.heading_check_step_m))
+        g = p.heading_check_step_m * np.arange(-n, n + 1, dtype=np.float64)
+        grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
+        grid += np.array([pred.x_m, pred.y_m])
+        scores = np.array(
+            [float(self._grid.hit_fraction(_rotate(sub, c), grid).max()) for c, _ in uniq]
+        )
+        # A candidate far from the prediction must beat the current heading by more.
+        far = np.array([offset(c) / reach for c, _ in uniq])
+        needed = scores[0] + p.heading_check_margin * (1.0 + 2.0 * far)
+        better = np.flatnonzero(scores >= needed)
+        if better.size == 0:
+            return None
+        best = int(better[np.argmax(scores[better])])
+        return wrap_angle(uniq[best][0]), uniq[best][1]
+
     # ------------------------------------------------------------------ reference
     def _reference(self, pred: Pose2D) -> tuple[FloatArray, FloatArray] | None:
         p = self.params
@@ -264,8 +366,16 @@ class ManhattanEstimator:
             frames = list(self._keyframes)
         if not frames:
             return None
-        pts = np.concatenate([f.points_map_m for f in frames])
-        w = np.concatenate([f.weights for f in frames])
+        if p.reference == "local_map":
+            if self._local_map is None:
+                self._local_map = (
+                    np.concatenate([f.points_map_m for f in frames]),
+                    np.concatenate([f.weights for f in frames]),
+                )
+            pts, w = self._local_map
+        else:
+            pts = np.concatenate([f.points_map_m for f in frames])
+            w = np.concatenate([f.weights for f in frames])
         if len(frames) > 1:
             d2 = (pts[:, 0] - pred.x_m) ** 2 + (pts[:, 1] - pred.y_m) ** 2
             keep = d2 <= p.local_map_radius_m**2
@@ -310,11 +420,11 @@ class ManhattanEstimator:
     ) -> PoseEstimate:
         p = self.params
         if self._initialised and self._stamp_ns is not None:
-            dt = (scan.stamp_ns - self._stamp_ns) * 1e-9
+            dt = self._dt_s(scan)
             # An ambiguous match says little about the motion: keep the previous velocity, so
             # that a featureless corridor does not stop the robot (the stationary-lock failure).
             unsure = PoseFlag.DEGENERATE | PoseFlag.AMBIGUOUS_X | PoseFlag.AMBIGUOUS_Y
-            if 1e-4 < dt < 2.0 and not (flags & unsure and self._velocity is not None):
+            if 1e-4 < dt < 2.0:
                 d = self._pose.between(pose)
                 vx, vy, w = d.x_m / dt, d.y_m / dt, d.theta_rad / dt
                 speed = math.hypot(vx, vy)
@@ -329,6 +439,21 @@ class ManhattanEstimator:
                         0.3 * v.y_m + 0.7 * vy,
                         0.3 * v.theta_rad + 0.7 * w,
                     )
+                    if flags & unsure:
+                        vx, vy = v.x_m, v.y_m
+                    # Bounded acceleration: a match one door period ahead along a corridor
+                    # must not feed back into a faster and faster prediction (runaway).
+                    dv_max = p.max_accel_m_s2 * dt
+                    dvx, dvy = vx - v.x_m, vy - v.y_m
+                    dv = math.hypot(dvx, dvy)
+                    if dv > dv_max > 0.0:
+                        vx, vy = v.x_m + dvx * dv_max / dv, v.y_m + dvy * dv_max / dv
+                    # The turn rate is measured only by a confident heading; otherwise it decays,
+                    # so that a turn does not go on being predicted through a corridor or
+                    # clutter (the overshoot that lost the heading quadrant).
+                    weak = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
+                    if flags & weak:
+                        w = p.turn_rate_decay * v.theta_rad
                 self._velocity = Pose2D(vx, vy, w)
         if scan.odom is not None:
             self._odom = scan.odom
@@ -350,13 +475,18 @@ class ManhattanEstimator:
                 dist = math.hypot(pose.x_m - last.x_m, pose.y_m - last.y_m)
                 dang = abs(wrap_angle(pose.theta_rad - last.theta_rad))
                 is_kf = dist >= p.keyframe_distance_m or dang >= math.radians(p.keyframe_angle_deg)
-                # Do not pollute the map with poorly constrained scans.
+                # Do not pollute the map with poorly constrained scans. An ambiguous match
+                # (periodic doors, corridor) enters only when the map would otherwise go stale.
                 if quality < 0.35:
+                    is_kf = False
+                ambiguous = PoseFlag.AMBIGUOUS_X | PoseFlag.AMBIGUOUS_Y
+                if flags & ambiguous and dist < p.keyframe_ambiguous_distance_m:
                     is_kf = False
             if is_kf:
                 self._keyframes.append(frame)
                 self._grid_dirty = True
                 self._dir_hist = None
+                self._local_map = None
         self._initialised = self._initialised or (
             pts is not None and not flags & PoseFlag.DEGENERATE
         )

@@ -10,7 +10,9 @@ the member of {α + k·90°} nearest to the prediction: the paper's ±45° rule.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -42,6 +44,84 @@ def wrap_quarter(angle_rad: float | FloatArray) -> float | FloatArray:
     return (angle_rad + QUARTER / 2.0) % QUARTER - QUARTER / 2.0
 
 
+_WORK = threading.local()  # per-thread scratch buffers: estimators may run in worker threads
+
+
+def _scratch(name: str, size: int, dtype: type[np.generic]) -> npt.NDArray[Any]:
+    """A reusable 1-D buffer of at least `size` items (fresh large arrays cost page faults)."""
+    buf: npt.NDArray[Any] | None = getattr(_WORK, name, None)
+    if buf is None or buf.size < size:
+        buf = np.empty(max(size, 1024), dtype=dtype)
+        setattr(_WORK, name, buf)
+    return buf[:size]
+
+
+def _rotation_columns(angles_rad: FloatArray, bin_m: float) -> FloatArray:
+    """(2, 2K): p @ this = both coordinates of R(α)·p for every α, in bin units."""
+    k = angles_rad.shape[0]
+    c = np.cos(angles_rad)
+    s = np.sin(angles_rad)
+    dirs = np.empty((2, 2 * k))
+    dirs[0, :k] = c  # x' = c·x - s·y
+    dirs[1, :k] = -s
+    dirs[0, k:] = s  # y' = s·x + c·y
+    dirs[1, k:] = c
+    dirs /= bin_m
+    return dirs
+
+
+def _projection_indices(
+    points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float
+) -> tuple[FloatArray, npt.NDArray[np.intp], int]:
+    """Rotated coordinates in bin units (shifted positive) and their flat bin indices.
+
+    Returns (proj (M, 2K), idx (M, 2K), width): column j < K is the x coordinate at angle j,
+    column K + j the y coordinate; idx = floor(proj) + column · width. Both arrays are scratch
+    buffers, valid until the next call in this thread.
+    """
+    k = angles_rad.shape[0]
+    m = points_xy_m.shape[0]
+    # Both coordinates of R(α)·p for every α as one matrix product: (M, 2K).
+    proj = _scratch("proj", m * 2 * k, np.float64).reshape(m, 2 * k)
+    np.matmul(points_xy_m, _rotation_columns(angles_rad, bin_m), out=proj)
+    lo = math.floor(float(proj.min())) - 1
+    width = math.ceil(float(proj.max())) - lo + 2
+    proj -= lo  # now positive: truncation is floor
+    idx = _scratch("idx", m * 2 * k, np.intp).reshape(m, 2 * k)
+    np.copyto(idx, proj, casting="unsafe")
+    idx += np.arange(2 * k, dtype=np.intp) * width
+    return proj, idx, width
+
+
+def _hard_indices(
+    points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float
+) -> tuple[npt.NDArray[np.intp], int]:
+    """Flat bin indices (M, 2K) for hard binning, in a single matrix product.
+
+    The bin offset comes from the largest range instead of the data's extremes and is folded
+    into the product: only bin membership matters for hard bins, and an offset by whole bins
+    does not change it.
+    """
+    k = angles_rad.shape[0]
+    m = points_xy_m.shape[0]
+    r2_max = float((points_xy_m * points_xy_m).sum(axis=1).max()) if m else 0.0
+    r_bins = math.sqrt(r2_max) / bin_m
+    lo = -math.ceil(r_bins) - 1
+    width = math.ceil(r_bins) - lo + 2
+    mat = np.empty((3, 2 * k))
+    mat[:2] = _rotation_columns(angles_rad, bin_m)
+    mat[2] = -float(lo)
+    aug = np.empty((m, 3))
+    aug[:, :2] = points_xy_m
+    aug[:, 2] = 1.0
+    proj = _scratch("proj", m * 2 * k, np.float64).reshape(m, 2 * k)
+    np.matmul(aug, mat, out=proj)
+    idx = _scratch("idx", m * 2 * k, np.intp).reshape(m, 2 * k)
+    np.copyto(idx, proj, casting="unsafe")  # positive: truncation is floor
+    idx += np.arange(2 * k, dtype=np.intp) * width
+    return idx, width
+
+
 def _projection_histograms(
     points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float, soft: bool
 ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
@@ -51,26 +131,28 @@ def _projection_histograms(
     bins (linear interpolation), which makes the score smooth in the angle.
     """
     k = angles_rad.shape[0]
-    c = np.cos(angles_rad)
-    s = np.sin(angles_rad)
-    # Both coordinates of R(α)·p for every α as one matrix product: (M, 2K).
-    dirs = np.concatenate((np.stack((c, -s)), np.stack((s, c))), axis=1) / bin_m
-    proj = points_xy_m @ dirs
-    lo = math.floor(float(proj.min())) - 1
-    width = math.ceil(float(proj.max())) - lo + 2
-    proj -= lo  # now positive: truncation is floor
-    cols = np.arange(2 * k) * width
     if soft:
-        i0 = proj.astype(np.int64)
-        frac = proj - i0
-        i0 += cols
-        h = np.bincount(i0.ravel(), weights=(1.0 - frac).ravel(), minlength=2 * k * width)
-        h += np.bincount((i0 + 1).ravel(), weights=frac.ravel(), minlength=2 * k * width)
+        proj, idx, width = _projection_indices(points_xy_m, angles_rad, bin_m)
+        h = _soft_counts(proj, idx, 2 * k * width)
     else:
-        idx = proj.astype(np.int64) + cols
+        idx, width = _hard_indices(points_xy_m, angles_rad, bin_m)
         h = np.bincount(idx.ravel(), minlength=2 * k * width).astype(np.float64)
     h2: FloatArray = np.asarray(h[: 2 * k * width], dtype=np.float64).reshape(2 * k, width)
     return h2[:k], h2[k:]
+
+
+def _soft_counts(proj: FloatArray, idx: npt.NDArray[np.intp], n_bins: int) -> FloatArray:
+    """Linear-interpolation histogram: each point split between its bin and the next one."""
+    frac = proj.ravel()  # reuse: proj is scratch
+    tmp = _scratch("tmp", frac.shape[0], np.float64)
+    np.floor(frac, out=tmp)
+    frac -= tmp
+    np.subtract(1.0, frac, out=tmp)
+    flat_idx = idx.ravel()
+    h = np.asarray(np.bincount(flat_idx, weights=tmp, minlength=n_bins), dtype=np.float64)
+    flat_idx += 1
+    h += np.bincount(flat_idx, weights=frac, minlength=n_bins)
+    return h
 
 
 def heading_scores(
@@ -86,10 +168,20 @@ def heading_scores(
     both wall families count; "energy": Σ h² over both projections (pairs of points sharing a
     bin), smoother and less sensitive to which single wall is longest.
     """
-    hx, hy = _projection_histograms(points_xy_m, angles_rad, bin_m, soft=soft and score == "energy")
+    k = angles_rad.shape[0]
+    if score == "energy" and soft:
+        proj, idx, width = _projection_indices(points_xy_m, angles_rad, bin_m)
+        h = _soft_counts(proj, idx, 2 * k * width)[: 2 * k * width].reshape(2 * k, width)
+        sq = np.einsum("ij,ij->i", h, h)
+        return np.asarray(sq[:k] + sq[k:], dtype=np.float64)
+    # Hard bins: integer counts, so Σ h² and the maxima are exact in int64.
+    hidx, width = _hard_indices(points_xy_m, angles_rad, bin_m)
+    hi = np.bincount(hidx.ravel(), minlength=2 * k * width)[: 2 * k * width].reshape(2 * k, width)
     if score == "max":
-        return np.asarray(hx.max(axis=1) + hy.max(axis=1), dtype=np.float64)
-    return np.asarray(np.einsum("ij,ij->i", hx, hx) + np.einsum("ij,ij->i", hy, hy))
+        per_row = hi.max(axis=1)
+        return np.asarray(per_row[:k] + per_row[k:], dtype=np.float64)
+    sqi = np.einsum("ij,ij->i", hi, hi)
+    return np.asarray(sqi[:k] + sqi[k:], dtype=np.float64)
 
 
 def parabolic_offset(y_minus: float, y0: float, y_plus: float) -> float:
@@ -97,7 +189,7 @@ def parabolic_offset(y_minus: float, y0: float, y_plus: float) -> float:
     denom = y_minus - 2.0 * y0 + y_plus
     if denom >= 0.0:
         return 0.0
-    return float(np.clip(0.5 * (y_minus - y_plus) / denom, -0.5, 0.5))
+    return min(max(0.5 * (y_minus - y_plus) / denom, -0.5), 0.5)
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,9 +204,19 @@ class HeadingMeasurement:
     major_axis: int  # 0 when the strongest wall is parallel to the map y axis, 1 for x
 
 
+def _median(values: FloatArray) -> float:
+    """`np.median` of a finite 1-D array, bit for bit, without its generic overhead."""
+    n = values.shape[0]
+    half = n // 2
+    if n % 2:
+        return float(np.partition(values, half)[half])
+    part = np.partition(values, (half - 1, half))
+    return (float(part[half - 1]) + float(part[half])) / 2.0
+
+
 def _circular_peaks(scores: FloatArray) -> npt.NDArray[np.int64]:
-    left = np.roll(scores, 1)
-    right = np.roll(scores, -1)
+    left = np.concatenate((scores[-1:], scores[:-1]))
+    right = np.concatenate((scores[1:], scores[:1]))
     peaks = np.flatnonzero((scores >= left) & (scores > right))
     if peaks.size == 0:
         peaks = np.array([int(np.argmax(scores))])
@@ -160,7 +262,7 @@ def measure_heading(
     by_score = peaks[np.argsort(-s_coarse[peaks])]
     rivals = by_score[by_score != chosen]
     rival_ratio = float(s_coarse[rivals[0]] / s_coarse[chosen]) if rivals.size else 0.0
-    median = float(np.median(s_coarse))
+    median = _median(s_coarse)
     contrast = float(s_coarse[chosen]) / max(median, 1e-9)
 
     n_half = max(1, round(fine_half_rad / step_rad))

@@ -38,6 +38,9 @@ class EstimatorParams:
     heading_max_range_m: float = 12.0  # heading uses the points within this range
     max_speed_m_s: float = 2.0  # clamp of the constant-velocity model
     max_turn_rate_deg_s: float = 120.0
+    max_accel_m_s2: float = 1.0  # bound on the constant-velocity model's change (0: none)
+    scan_period_s: float = 0.2  # > 0: constant motion per scan (this nominal period), not time
+    turn_rate_decay: float = 0.5  # per scan, while the heading is a fallback (not measured)
     translation_window_pred_m: float = 0.4  # ± translation search around the prediction
     translation_window_odom_m: float = 0.25  # ± around an odometry prediction
     translation_prior_sigma_m: float = 0.1  # trust in a constant-velocity prediction (0: none)
@@ -47,6 +50,7 @@ class EstimatorParams:
     reference: ReferenceMode = "local_map"
     keyframe_distance_m: float = 0.3  # the paper's scan spacing, reused for keyframes
     keyframe_angle_deg: float = 10.0
+    keyframe_ambiguous_distance_m: float = 0.0  # > 0: ambiguous matches keyframe only this far
     local_map_keyframes: int = 12  # keyframes kept in the local map
     local_map_radius_m: float = 12.0  # reference points farther than this are ignored
     direction_prior: bool = True  # relative rotation from surface-direction histograms
@@ -54,6 +58,13 @@ class EstimatorParams:
     direction_sigma_deg: float = 2.0  # trust in it as the Manhattan heading's prior
     direction_min_contrast: float = 0.1
     refine_2d: bool = True  # joint 2-D check of the 1-D peak candidates
+    heading_check: bool = True  # re-anchor the heading quadrant on the local map's geometry
+    heading_check_min_turn_deg: float = 4.0  # run it when turning faster than this per scan
+    heading_check_max_turn_deg: float = 20.0  # candidates within this of the prediction
+    heading_check_window_m: float = 0.4  # ± translation grid of the check
+    heading_check_step_m: float = 0.1
+    heading_check_points: int = 120  # scan points scored (subsampled)
+    heading_check_margin: float = 0.06  # hit-fraction gain needed to change the heading
 
     # --- degeneracy / ambiguity thresholds --------------------------------------------------
     min_points: int = 20  # fewer valid points than this: DEGENERATE

@@ -18,6 +18,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import as_strided
 
 from service.core.heading import parabolic_offset
 from service.core.types import FloatArray
@@ -45,11 +46,11 @@ def orientation_weights(
     ok &= near[:-3] & near[1:-2] & near[2:-1] & near[3:]
     safe = np.where(ok, length, 1.0)
     s2 = (d[:, 1] / safe) ** 2
-    inner = w[2:-2]
-    inner[ok, 0] = s2[ok]
-    inner[ok, 1] = 1.0 - s2[ok]
     # Sharpen: a tangent within ~20° of an axis votes (almost) only for the other axis.
-    inner[ok] = np.clip((inner[ok] - 0.5) * 1.6 + 0.5, 0.0, 1.0)
+    wx = np.minimum(np.maximum((s2 - 0.5) * 1.6 + 0.5, 0.0), 1.0)
+    wy = np.minimum(np.maximum(((1.0 - s2) - 0.5) * 1.6 + 0.5, 0.0), 1.0)
+    w[2:-2, 0] = np.where(ok, wx, isolated_weight)
+    w[2:-2, 1] = np.where(ok, wy, isolated_weight)
     return w
 
 
@@ -90,16 +91,31 @@ def correlate_axis(  # noqa: PLR0917 - the paper's equation, argument for argume
     )
     # Smooth by the paper's bin. Binning both scans at `bin_m` and averaging over the bin
     # phase gives a triangle of half-width `bin_m`: peaked, so the sub-step refinement works
-    # (a plain box would give a flat-topped correlation).
+    # (a plain box would give a flat-topped correlation). Only the bins the shifted current
+    # points reach are smoothed (same values as smoothing the whole density).
     half = max(1, round(bin_m / step_m))
     tri = 1.0 - np.abs(np.arange(-half, half + 1)) / (half + 1)
-    dens = np.asarray(np.convolve(dens, tri, mode="same"), dtype=np.float64)
-    # Gather the density at every shifted current point: (M, K).
     base = (cur_coords_m + shifts[0] - lo) / step_m
-    base_idx = np.floor(base).astype(np.int64)
-    idx = base_idx[:, None] + np.arange(shifts.shape[0])[None, :]
-    np.clip(idx, 0, n_bins - 1, out=idx)
-    energy = cur_weights @ dens[idx]
+    base_idx = np.floor(base).astype(np.intp)
+    k = shifts.shape[0]
+    first = min(max(int(base_idx.min()), 0), n_bins - 1)
+    last = min(max(int(base_idx.max()) + k - 1, first), n_bins - 1)
+    padded = np.zeros(last - first + 1 + 2 * half)
+    src_lo, src_hi = max(first - half, 0), min(last + half + 1, n_bins)
+    padded[src_lo - (first - half) : src_hi - (first - half)] = dens[src_lo:src_hi]
+    dens = np.asarray(np.convolve(padded, tri, mode="valid"), dtype=np.float64)
+    # Gather the density at every shifted current point: row i = dens[b_i : b_i + K], (M, K).
+    start = base_idx - first
+    if int(start.min()) >= 0 and int(start.max()) + k <= dens.shape[0]:
+        # Every window lies inside (the margins of lo/hi guarantee it): one fancy index of a
+        # sliding-window view, no (M, K) index array.
+        step_b = dens.strides[0]
+        windows = as_strided(dens, (dens.shape[0] - k + 1, k), (step_b, step_b), writeable=False)
+        vals = windows[start]
+    else:  # defensive: clip indices to the bins, as a histogram edge would
+        idx = start[:, None] + np.arange(k, dtype=np.intp)[None, :]
+        vals = np.take(dens, idx, mode="clip")
+    energy = cur_weights @ vals
     return shifts, np.asarray(energy, dtype=np.float64)
 
 
@@ -160,4 +176,4 @@ def pick_peak(
     if at_edge:
         ambiguous = True
     cands = tuple(float(shifts_m[j]) for j in order[:3])
-    return AxisMatch(value, cands, float(np.clip(contrast, 0.0, 1.0)), support, ambiguous)
+    return AxisMatch(value, cands, min(max(contrast, 0.0), 1.0), support, ambiguous)

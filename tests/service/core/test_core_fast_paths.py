@@ -1,0 +1,87 @@
+"""The estimator's fast paths against straightforward reference implementations."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from service.core import refine
+from service.core.heading import _median, heading_scores
+from service.core.refine import OccupiedCells
+from service.core.translation import correlate_axis
+from service.core.types import FloatArray
+
+
+def _naive_scores(pts: FloatArray, angles: FloatArray, bin_m: float, soft: bool) -> FloatArray:
+    out = np.empty(angles.shape[0])
+    for k, a in enumerate(angles):
+        c, s = math.cos(a), math.sin(a)
+        total = 0.0
+        for coord in (c * pts[:, 0] - s * pts[:, 1], s * pts[:, 0] + c * pts[:, 1]):
+            u = coord / bin_m
+            lo = math.floor(float(u.min())) - 1
+            i0 = np.floor(u - lo).astype(np.int64)
+            if soft:
+                f = (u - lo) - i0
+                h = np.bincount(i0, 1.0 - f, i0.max() + 2) + np.bincount(i0 + 1, f, i0.max() + 2)
+            else:
+                h = np.bincount(i0).astype(np.float64)
+            total += float((h * h).sum())
+        out[k] = total
+    return out
+
+
+@pytest.mark.parametrize("soft", [False, True])
+def test_heading_scores_match_naive_histograms(soft: bool) -> None:
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        pts = rng.normal(0.0, rng.uniform(0.5, 10.0), (int(rng.integers(5, 300)), 2))
+        angles = rng.uniform(-0.8, 0.8, int(rng.integers(1, 40)))
+        got = heading_scores(pts, angles, 0.05, "energy", soft=soft)
+        np.testing.assert_allclose(got, _naive_scores(pts, angles, 0.05, soft), rtol=1e-9)
+
+
+def test_correlate_axis_matches_per_shift_gather() -> None:
+    rng = np.random.default_rng(6)
+    for _ in range(30):
+        ref = rng.uniform(-20.0, 20.0, int(rng.integers(10, 2000)))
+        ref_w = np.asarray(rng.random(ref.shape[0]), dtype=np.float64)
+        cur = rng.uniform(-20.0, 20.0, int(rng.integers(10, 500)))
+        cur_w = np.asarray(rng.random(cur.shape[0]), dtype=np.float64)
+        centre = float(rng.uniform(-1.0, 1.0))
+        shifts, energy = correlate_axis(ref, ref_w, cur, cur_w, centre, 0.4, 0.005, 0.03)
+        # The definition: reference density at 0.005 m, smoothed by the 0.03 m triangle over
+        # the whole axis, read at every shifted current point.
+        lo = min(float(ref.min()), float(cur.min()) + float(shifts[0])) - 0.03
+        hi = max(float(ref.max()), float(cur.max()) + float(shifts[-1])) + 0.03
+        n_bins = math.ceil((hi - lo) / 0.005) + 2
+        raw = np.bincount(np.floor((ref - lo) / 0.005).astype(np.int64), ref_w, n_bins)
+        tri = 1.0 - np.abs(np.arange(-6, 7)) / 7.0
+        dens = np.convolve(raw, tri, mode="same")
+        base = np.floor((cur + shifts[0] - lo) / 0.005).astype(np.int64)
+        k = shifts.shape[0]
+        want = np.array([cur_w @ dens[np.clip(base + j, 0, n_bins - 1)] for j in range(k)])
+        np.testing.assert_allclose(energy, want, rtol=1e-12, atol=1e-12)
+
+
+def test_occupied_cells_bitmap_matches_sorted_keys(monkeypatch: pytest.MonkeyPatch) -> None:
+    rng = np.random.default_rng(7)
+    cases = []
+    for _ in range(30):
+        pts = rng.normal(0.0, rng.uniform(0.5, 15.0), (int(rng.integers(1, 2000)), 2))
+        query = np.concatenate((pts[:50] + rng.normal(0, 0.1, (min(50, len(pts)), 2)),
+                                rng.normal(0.0, 20.0, (50, 2))))  # fmt: skip
+        cands = rng.normal(0.0, 0.5, (int(rng.integers(1, 20)), 2))
+        cases.append((pts, query, cands, OccupiedCells(pts).hit_fraction(query, cands)))
+    monkeypatch.setattr(refine, "_MAX_BITMAP_CELLS", 0)  # force the sorted-keys form
+    for pts, query, cands, fast in cases:
+        np.testing.assert_array_equal(OccupiedCells(pts).hit_fraction(query, cands), fast)
+
+
+def test_median_is_numpy_median() -> None:
+    rng = np.random.default_rng(8)
+    for n in (1, 2, 3, 89, 90, 91):
+        v = rng.normal(size=n)
+        assert _median(v) == float(np.median(v))
