@@ -4,7 +4,8 @@ Per scan:
 1. valid points, thinned to ~0.05 m (paper §II-A.1);
 2. motion prediction: odometry when the scan carries it, else constant velocity;
 3. heading modulo 90° from projection histograms, searched around the predicted heading,
-   resolved to the absolute heading by the ±45° rule (paper §II);
+   resolved to the absolute heading by the ±45° rule (paper §II); without odometry, while
+   turning, the quadrant is re-anchored on the local map's geometry (`_check_heading`);
 4. translation from 1-D histogram correlations along the map axes (paper §III) against a local
    map of recent keyframes, centred on the prediction, sub-bin refined, with ambiguity checks;
 5. a joint 2-D check of the 1-D peak candidates and a small 2-D/rotation refinement.
@@ -69,6 +70,7 @@ class ManhattanEstimator:
         self._grid: OccupiedCells | None = None
         self._grid_dirty = True
         self._dir_hist: FloatArray | None = None
+        self._periods_s: deque[float] = deque(maxlen=51)  # recent scan periods (stamps)
         # Local map as one array pair, rebuilt only when a keyframe is added (speed).
         self._local_map: tuple[FloatArray, FloatArray] | None = None
 
@@ -118,15 +120,22 @@ class ManhattanEstimator:
         return self._pose.compose(Pose2D(v.x_m * dt, v.y_m * dt, v.theta_rad * dt)), PoseFlag.NONE
 
     def _dt_s(self, scan: LaserScan) -> float:
-        """Time since the previous scan for the motion model (a nominal period per scan).
+        """Time since the previous scan for the motion model, robust to bursty stamps.
 
-        Logged stamps can be bursty (Intel: 1 ms to 1.5 s between consecutive scans), which
-        makes a constant velocity in time useless; constant motion per scan is robust to that.
+        Logged stamps can be bursty (Intel: 1 ms to 1.5 s between consecutive scans) although
+        the robot moves about the same per scan, so the step is clipped to a factor of the
+        recent median period (ACES: 0.08-0.35 s, mostly unchanged). `scan_period_s > 0` uses
+        that nominal period for every scan (constant motion per scan).
         """
-        if self.params.scan_period_s > 0.0:
-            return self.params.scan_period_s
+        p = self.params
+        if p.scan_period_s > 0.0:
+            return p.scan_period_s
         assert self._stamp_ns is not None
-        return (scan.stamp_ns - self._stamp_ns) * 1e-9
+        dt = (scan.stamp_ns - self._stamp_ns) * 1e-9
+        if len(self._periods_s) >= 5 and p.period_clip_ratio > 1.0:
+            typical = float(np.median(self._periods_s))
+            dt = min(max(dt, typical / p.period_clip_ratio), typical * p.period_clip_ratio)
+        return dt
 
     def _process(self, scan: LaserScan) -> PoseEstimate:
         p = self.params
@@ -491,6 +500,8 @@ class ManhattanEstimator:
             pts is not None and not flags & PoseFlag.DEGENERATE
         )
         self._pose = pose
+        if self._stamp_ns is not None and scan.stamp_ns > self._stamp_ns:
+            self._periods_s.append((scan.stamp_ns - self._stamp_ns) * 1e-9)
         self._stamp_ns = scan.stamp_ns
         return PoseEstimate(
             stamp_ns=scan.stamp_ns,

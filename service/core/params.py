@@ -38,8 +38,9 @@ class EstimatorParams:
     heading_max_range_m: float = 12.0  # heading uses the points within this range
     max_speed_m_s: float = 2.0  # clamp of the constant-velocity model
     max_turn_rate_deg_s: float = 120.0
-    max_accel_m_s2: float = 1.0  # bound on the constant-velocity model's change (0: none)
+    max_accel_m_s2: float = 0.5  # bound on the constant-velocity model's change (0: none)
     scan_period_s: float = 0.2  # > 0: constant motion per scan (this nominal period), not time
+    period_clip_ratio: float = 2.0  # scan period clipped to [1/r, r] × the recent median
     turn_rate_decay: float = 0.5  # per scan, while the heading is a fallback (not measured)
     translation_window_pred_m: float = 0.4  # ± translation search around the prediction
     translation_window_odom_m: float = 0.25  # ± around an odometry prediction
