@@ -2,6 +2,7 @@
 
     python -m bench.profile_estimator [--synthetic N] [--aces N] [--repeat N] [--profile]
                                       [--baseline N] [--record FILE.npz] [--compare FILE.npz]
+                                      [--against DIR]
 
 Sequences (all scans are prepared before timing):
 - synthetic: paper-size building seed 0, UTM-30LX (1,081 beams), 0.3 m spacing, no odometry;
@@ -9,6 +10,11 @@ Sequences (all scans are prepared before timing):
 
 Prints median / p99 ms per scan for each, optionally a cProfile top-20 over all of them, and
 records or compares the poses and flags (max position / heading difference, flag mismatches).
+
+`--against DIR` times another version of the estimator side by side, scan by scan alternately in
+this process (so machine load hits both alike), e.g. the last commit:
+    mkdir -p /tmp/head && git archive HEAD service | tar -x -C /tmp/head
+    python -m bench.profile_estimator --repeat 3 --against /tmp/head
 """
 
 from __future__ import annotations
@@ -91,6 +97,38 @@ def run(scans: list[LaserScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return times, cpu, poses, flags
 
 
+def load_estimator(root: Path) -> type[ManhattanEstimator]:
+    """`ManhattanEstimator` of the source tree `root` (its own `service` package, not ours)."""
+    ours = {k: sys.modules.pop(k) for k in list(sys.modules) if k.split(".")[0] == "service"}
+    sys.path.insert(0, str(root))
+    try:
+        import service.core.estimator as other
+
+        if not Path(other.__file__ or "").resolve().is_relative_to(root.resolve()):
+            raise SystemExit(f"{root}: no service/core/estimator.py there")
+        cls: type[ManhattanEstimator] = other.ManhattanEstimator
+    finally:
+        sys.path.remove(str(root))
+        for k in [k for k in sys.modules if k.split(".")[0] == "service"]:
+            del sys.modules[k]
+        sys.modules.update(ours)
+    return cls
+
+
+def run_pair(
+    scans: list[LaserScan], other_cls: type[ManhattanEstimator]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Wall ms per scan of ours and of `other_cls`, alternating which goes first."""
+    pair = (ManhattanEstimator(), other_cls())
+    times = np.empty((2, len(scans)))
+    for i, scan in enumerate(scans):
+        for j in (0, 1) if i % 2 == 0 else (1, 0):
+            t0 = time.perf_counter_ns()
+            pair[j].process(scan)
+            times[j, i] = (time.perf_counter_ns() - t0) * 1e-6
+    return times[0], times[1]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--synthetic", type=int, default=400)
@@ -102,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     ap.add_argument("--record", type=Path)
     ap.add_argument("--compare", type=Path)
+    ap.add_argument("--against", type=Path, help="source tree of another version to time")
     a = ap.parse_args(argv)
 
     seqs = {"synthetic": synthetic_scans(a.synthetic)}
@@ -133,6 +172,23 @@ def main(argv: list[str] | None = None) -> int:
         medians[name] = float(np.median(best))
         results[f"{name}/poses"] = poses
         results[f"{name}/flags"] = flags
+
+    if a.against is not None:
+        other_cls = load_estimator(a.against)
+        for name, scans in seqs.items():
+            best_pair: tuple[np.ndarray, np.ndarray] | None = None
+            for _ in range(max(1, a.repeat)):
+                t_ours, t_other = run_pair(scans, other_cls)
+                if best_pair is None or np.median(t_ours) < np.median(best_pair[0]):
+                    best_pair = (t_ours, t_other)
+            assert best_pair is not None
+            t_ours, t_other = best_pair
+            print(
+                f"{name:12s} side by side: ours median {np.median(t_ours):6.3f} p99 "
+                f"{np.percentile(t_ours, 99):6.3f} ms | {a.against}: median "
+                f"{np.median(t_other):6.3f} p99 {np.percentile(t_other, 99):6.3f} ms | "
+                f"ratio {np.median(t_other) / np.median(t_ours):4.2f}x"
+            )
 
     if a.baseline > 0 and "synthetic" in seqs:
         from bench.paper_baseline import PaperBaseline

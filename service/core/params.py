@@ -35,6 +35,7 @@ class EstimatorParams:
     heading_max_offset_sigmas: float = 3.0  # farther from the prediction: NON_MANHATTAN
     heading_coarse_step_deg: float = 1.0  # coarse 90° search step (then the paper's 0.1°)
     heading_coarse_bin_m: float = 0.05
+    heading_coarse_window_sigmas: float = 6.0  # coarse search ± this × prior σ (0: all 90°)
     heading_max_range_m: float = 12.0  # heading uses the points within this range
     max_speed_m_s: float = 2.0  # clamp of the constant-velocity model
     max_turn_rate_deg_s: float = 120.0

@@ -40,12 +40,17 @@ class OccupiedCells:
         h, w = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
         if h * w <= _MAX_BITMAP_CELLS:
             self._origin = lo
-            flat = np.zeros(h * w, dtype=np.bool_)
-            base = (c[:, 0] - lo[0]) * w + (c[:, 1] - lo[1])
-            for di in (-1, 0, 1):
-                for dj in (-1, 0, 1):
-                    flat[base + (di * w + dj)] = True
-            self._bitmap = flat.reshape(h, w)
+            occ = np.zeros(h * w, dtype=np.bool_)
+            occ[(c[:, 0] - lo[0]) * w + (c[:, 1] - lo[1])] = True
+            occ2 = occ.reshape(h, w)
+            # 3x3 dilation, separable: rows then columns (the margin keeps it off the edges).
+            rows = occ2.copy()
+            rows[1:] |= occ2[:-1]
+            rows[:-1] |= occ2[1:]
+            bitmap = rows.copy()
+            bitmap[:, 1:] |= rows[:, :-1]
+            bitmap[:, :-1] |= rows[:, 1:]
+            self._bitmap = bitmap
         else:
             c += _OFFSET
             di, dj = (a.ravel() for a in np.mgrid[-1:2, -1:2])
