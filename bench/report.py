@@ -1,0 +1,564 @@
+"""Render the results of a run as `docs/benchmarks.md` plus plots in `docs/img/`."""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import re
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+PLOT_SPEED = "bench_speed_per_scan.png"
+PLOT_LATENCY = "bench_latency_vs_robots.png"
+PLOT_GROWTH = "bench_time_per_scan_over_run.png"
+
+
+def _f(x: Any, digits: int = 2) -> str:
+    if x is None or (isinstance(x, float) and math.isnan(x)):
+        return "–"
+    if isinstance(x, int):
+        return f"{x:,}"
+    return f"{x:,.{digits}f}"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    out = ["| " + " | ".join(header) + " |", "|" + "|".join("---" for _ in header) + "|"]
+    out += ["| " + " | ".join(r) + " |" for r in rows]
+    return out
+
+
+def _verdict(passed: bool | None) -> str:
+    return "n/a" if passed is None else ("**PASS**" if passed else "**MISS**")
+
+
+def _targets_table(targets: Sequence[dict[str, Any]]) -> list[str]:
+    return _table(
+        ["target", "goal", "measured", "verdict"],
+        [[t["name"], t["target"], t["measured"], _verdict(t["passed"])] for t in targets],
+    )
+
+
+def _profile_block(profile: dict[str, Any] | None) -> list[str]:
+    if not profile:
+        return []
+    rows = []
+    for r in profile["rows"]:
+        calls = "" if r.get("calls") is None else _f(int(r["calls"]), 0)
+        rows.append(
+            [
+                f"`{r['function']}`",
+                f"{100 * r['self_share']:.1f} %",
+                f"{100 * r['inclusive_share']:.1f} %",
+                calls,
+            ]
+        )
+    header = ["function", "own time", "incl. callees", "calls"]
+    if profile["tool"] != "cProfile":
+        header, rows = header[:3], [r[:3] for r in rows]
+    return [
+        "",
+        f"Profile ({profile['tool']}): {profile['what']}. Top functions by own time:",
+        "",
+        *_table(header, rows),
+    ]
+
+
+# ---------------------------------------------------------------------------------------------
+# Plots
+
+
+def _plt() -> Any:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def plot_speed(speed: dict[str, Any], path: Path) -> None:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=110)
+    for m in speed["methods"]:
+        t = np.sort(np.asarray(m["times_ms"][1:], dtype=float))
+        if t.size:
+            ax.plot(t, np.linspace(0, 100, t.size), label=m["name"])
+    ax.set_xscale("log")
+    ax.set_xlabel("time per scan (ms, log scale)")
+    ax.set_ylabel("scans (%)")
+    ax.set_title(f"Time per 1,081-beam scan, same {speed['scans']} scans, same run")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_latency(scale: dict[str, Any], path: Path) -> None:
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=110)
+    styles = {"agents": ("tab:red", "emulated agents"), "loadgen": ("tab:blue", "load generator")}
+    for load, (color, label) in styles.items():
+        pts = sorted(
+            (p for p in scale["points"] if p["load"] == load and "error" not in p),
+            key=lambda p: p["robots"],
+        )
+        if not pts:
+            continue
+        n = [p["robots"] for p in pts]
+        ax.plot(n, [p["latency_p50_ms"] for p in pts], "o--", color=color, label=f"{label} p50")
+        ax.plot(n, [p["latency_p99_ms"] for p in pts], "s-", color=color, label=f"{label} p99")
+    ns = sorted({p["robots"] for p in scale["points"]})
+    ax.set_xticks(ns)
+    ax.axhline(50.0, color="gray", lw=1, ls=":", label="target p99 50 ms")
+    ax.set_yscale("log")
+    ax.set_xlabel("robots at 40 Hz")
+    ax.set_ylabel("scan → pose latency (ms, log)")
+    ax.set_title("Scan→pose latency against the number of robots")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def plot_growth(growth: dict[str, Any], path: Path) -> None:
+    plt = _plt()
+    dist = np.asarray(growth["distance_m"], dtype=float)
+    t = np.asarray(growth["time_ms"], dtype=float)
+    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=110)
+    ax.plot(dist, t, ".", ms=1.5, alpha=0.35, color="tab:blue", label="per scan")
+    win = max(5, t.size // 50)
+    cpu = np.asarray(growth.get("cpu_ms", []), dtype=float)
+    curves = ((t, "tab:blue", "rolling median, wall"), (cpu, "tab:green", "rolling median, CPU"))
+    for series, color, label in curves:
+        if series.size > win:
+            roll = np.array([np.median(series[i : i + win]) for i in range(series.size - win + 1)])
+            ax.plot(dist[win // 2 : win // 2 + roll.size], roll, color=color, label=label)
+    ax.set_yscale("log")
+    ax.set_xlabel("distance driven (m)")
+    ax.set_ylabel("estimator + grid per scan (ms, log)")
+    ax2 = ax.twinx()
+    idx, rss = zip(*growth["rss_trace"], strict=True)
+    ax2.plot(dist[list(idx)], rss, color="tab:orange", label="RSS growth (MiB)")
+    ax2.set_ylabel("RSS growth (MiB)", color="tab:orange")
+    ax.set_title(f"Cost per scan over a {growth['length_m']:.0f} m run")
+    ax.grid(True, which="both", alpha=0.3)
+    lines = ax.get_legend_handles_labels()
+    lines2 = ax2.get_legend_handles_labels()
+    ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], fontsize=8, loc="upper left")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------
+# Sections
+
+
+def _sizes_text(z: dict[str, Any]) -> str:
+    speed = "all scans of the loop" if z["speed_scans"] is None else f"{z['speed_scans']} scans"
+    robots = ", ".join(str(n) for n in z["scale_robots"])
+    return (
+        f"speed on {speed}; scale with N = {robots} robots, {z['scale_warmup_s']:g} s warm-up "
+        f"and {z['scale_measure_s']:g} s measured per point; growth in the "
+        f"{z['growth_building']} building over {z['growth_laps_between']} laps + 10 %"
+    )
+
+
+def _sizes_lines(sizes: dict[str, Any] | None) -> list[str]:
+    if not sizes:
+        return []
+    return [
+        (
+            f"Sizes: full mode: {_sizes_text(sizes['full'])}. Quick mode: "
+            f"{_sizes_text(sizes['quick'])}."
+        ),
+        "",
+    ]
+
+
+def _caveats() -> list[str]:
+    return [
+        "",
+        "## How to read these numbers",
+        "",
+        (
+            "- Everything ran on the one machine described above. Its two cores are shared with "
+            "other work (load average in the header), which inflates wall-clock times; the "
+            "compared methods ran interleaved under the same conditions, so their ratios are "
+            "the robust figures."
+        ),
+        (
+            "- In the scale runs the load (agents or generator) and the measuring subscriber run "
+            "on the same two cores as the service and take CPU from it; their CPU is reported "
+            "beside the service's."
+        ),
+        (
+            "- Latency includes Zenoh transport both ways (agent → service → subscriber) on "
+            "loopback and the service's queueing; it is measured on one clock."
+        ),
+        (
+            "- The growth run repeats the building's corridor loop; the map stops growing after "
+            "the first lap."
+        ),
+    ]
+
+
+def _header(res: dict[str, Any]) -> list[str]:
+    m = res["machine"]
+    mode = "quick" if res["quick"] else "full"
+    lines = [
+        "# Benchmarks",
+        "",
+        f"<!-- Generated by `{m['command']}`; do not edit by hand. -->",
+        "",
+        (
+            f"Generated by `{m['command']}` ({mode} mode) on {m['date_utc']}, in "
+            f"{res['wall_s'] / 60:.1f} min. Re-run with `make bench` (full) or `make "
+            "bench-quick`; raw numbers are in `bench/out/results.json`."
+        ),
+        "",
+        *_sizes_lines(res.get("sizes")),
+        "## Machine",
+        "",
+    ]
+    rows = [
+        ["CPU", f"{m['cpu_model']}, {m['cores']} cores (`/proc/cpuinfo`, `os.cpu_count()`)"],
+        ["memory", m["memory"]],
+        ["OS", m["os"]],
+        ["Python", m["python"]],
+        ["numpy", f"{m['numpy']} ({m['blas']})"],
+        ["eclipse-zenoh", m["zenoh"]],
+        ["kiss-icp", m["kiss_icp"]],
+        ["git commit", f"`{m['git_commit']}`"],
+        ["load average at start", m["load_average_at_start"]],
+        ["OpenBLAS overrides", m["openblas_env"]],
+    ]
+    lines += _table(["", ""], rows)
+    lines += [
+        "",
+        (
+            "The machine is small and shared: its two cores also ran other work during the run "
+            "(see the load average), so single numbers carry some noise; the methods compared in "
+            "each section ran side by side under the same conditions."
+        ),
+    ]
+    return lines
+
+
+def _speed_section(speed: dict[str, Any] | None, img_rel: str) -> list[str]:
+    lines = ["", "## 1. Estimator speed", ""]
+    if not speed:
+        return [*lines, "Not run."]
+    if "error" in speed:
+        return [*lines, f"Not measured: {speed['error']}"]
+    lines += [
+        (
+            f"{speed['scans']:,} scans of {speed['beams']:,} beams (simulated UTM-30LX, 270°) "
+            f"along {speed['length_m']:.0f} m of a synthetic building (seed {speed['seed']}), one "
+            f"scan every {speed['spacing_m']} m as in the paper. All methods ran in one process "
+            "on the same scans, interleaved scan by scan with the order rotating, so they shared "
+            "the machine's conditions; the first scan (initialisation) is left out. Times are "
+            "wall clock; the CPU column is the process's CPU time over the same call (all "
+            "threads), which leaves out waiting for a core on this shared machine. Accuracy is "
+            "against the simulator's ground truth: ATE after the best rigid 2D alignment, the "
+            "mean error of the scan-to-scan motion (RPE), the worst heading error, and the error "
+            "of the last pose seen from the first (the loop gap)."
+        ),
+        "",
+    ]
+    rows = []
+    ratios = speed.get("ratios_vs_ours", {})
+    for m in speed["methods"]:
+        t, e = m["timing"], m["errors"]
+        ratio = "1" if m["name"] == "ours" else f"{ratios.get(m['name'], math.nan):.3g}×"
+        rows.append(
+            [
+                f"**{m['name']}**",
+                _f(t["median_ms"], 3),
+                _f(t["p99_ms"], 3),
+                _f(m["cpu"]["median_ms"], 3),
+                ratio,
+                _f(e["ate_rmse_m"], 3),
+                _f(e["rpe_mean_m"], 4),
+                _f(e["heading_err_max_deg"], 2),
+                _f(e["end_error_m"], 3),
+            ]
+        )
+    lines += _table(
+        [
+            "method",
+            "median ms/scan",
+            "p99 ms/scan",
+            "median CPU ms/scan",
+            "median time vs ours",
+            "ATE RMSE (m)",
+            "RPE mean (m)",
+            "max heading err (°)",
+            "end-pose error (m)",
+        ],
+        rows,
+    )
+    quotes = []
+    for name, r in ratios.items():
+        if r >= 1.0:
+            quotes.append(f"ours takes 1/{r:.3g} of the time of {name} ({r:.3g}× faster)")
+        else:
+            quotes.append(f"{name} takes {r:.3g}× the time of ours ({1 / r:.3g}× faster than ours)")
+    if quotes:
+        lines += ["", "Median time per scan: " + "; ".join(quotes) + "."]
+    lines += ["", "Methods:", ""]
+    lines += [f"- **{m['name']}**: {m['description']}." for m in speed["methods"]]
+    lines += [f"- note: {n}" for n in speed.get("notes", [])]
+    lines += ["", f"![time per scan, cumulative]({img_rel}/{PLOT_SPEED})", ""]
+    lines += _targets_table(speed["targets"])
+    lines += _profile_block(speed.get("profile"))
+    return lines
+
+
+def _scale_section(scale: dict[str, Any] | None, img_rel: str) -> list[str]:
+    lines = ["", "## 2. End to end and scale", ""]
+    if not scale:
+        return [*lines, "Not run."]
+    if "error" in scale:
+        return [*lines, f"Not measured: {scale['error']}"]
+    lines += [
+        (
+            f"N robots publish 1,081-beam scans at {scale['rate_hz']:g} Hz each over Zenoh (TCP "
+            "on loopback) into one `mapping-service serve` process with one mapping session per "
+            f"robot. After start-up and a {scale['warmup_s']:g} s warm-up, a "
+            f"{scale['measure_s']:g} s window is measured. A separate subscriber process receives "
+            "every scan (the agents connect to it too) and every pose: *published* counts the "
+            "scans stamped in the window, *dropped* those whose pose never came, *latency* is "
+            "the pose's arrival minus the scan's `host_stamp_ns` (taken by the agent just before "
+            "it publishes). CPU is user + system time over the window (100 % = one core); RSS is "
+            "the service's."
+        ),
+        "",
+        "Two loads:",
+        "",
+        (
+            "- **emulated agents**: N `sensor-agent --emulate` processes, the real robot path "
+            "(simulated building → emulated UTM-30LX speaking SCIP 2.0 on a pty → driver → "
+            "Zenoh). Every agent is a Python process on the same two cores as the service, so at "
+            "larger N the agents themselves take most of the CPU ('load CPU');"
+        ),
+        (
+            "- **load generator**: one `bench.loadgen` process publishes pre-simulated scans for "
+            "all N robots at 40 Hz each, which isolates the service's own capacity."
+        ),
+        "",
+        (
+            "Columns: *published Hz/robot* is the scan rate the load actually achieved; "
+            "*poses/s* the poses delivered to the subscriber during the window; *dropped* "
+            "the window's scans that never got a pose (after the window the load stops and the "
+            "service works off its queues, up to a minute, so each scan is either answered, "
+            "however late, or discarded); *service ms/scan* the "
+            "service's own worker time per scan (decode, record, estimate, map, publish; from "
+            "its `/metrics` histogram; wall time of one worker thread, so with many robots it "
+            "includes waiting for the GIL and a core); *service queue drops* the scans its "
+            "per-robot queues discarded (from `/metrics`); *load CPU* is the agents' or the "
+            "generator's CPU, *machine busy* all processes on the machine, other users' included."
+        ),
+        "",
+    ]
+    for load, title in (("agents", "Emulated agents"), ("loadgen", "Load generator")):
+        pts = sorted((p for p in scale["points"] if p["load"] == load), key=lambda p: p["robots"])
+        if not pts:
+            continue
+        rows = []
+        for p in pts:
+            if "error" in p:
+                rows.append([str(p["robots"]), f"failed: {p['error']}", *[""] * 11])
+                continue
+            md = p.get("metrics_delta", {})
+            work_n = md.get("mapping_scan_processing_seconds_count", 0.0)
+            work_ms = 1e3 * md.get("mapping_scan_processing_seconds_sum", 0.0) / work_n
+            rows.append(
+                [
+                    str(p["robots"]),
+                    f"{p['publish_rate_per_robot_hz']:.1f}",
+                    _f(p["sustained_scans_per_s"], 1),
+                    f"{p['dropped']:,} of {p['scans_published']:,}",
+                    _f(p["latency_p50_ms"], 1),
+                    _f(p["latency_p99_ms"], 1),
+                    _f(work_ms if work_n else None, 2),
+                    _f(int(md.get("mapping_scans_dropped_total", 0))),
+                    _f(p["service_cpu_pct"], 0),
+                    _f(p["service_rss_mib_max"], 0),
+                    _f(p["load_cpu_pct"], 0),
+                    _f(p["subscriber_cpu_pct"], 0),
+                    _f(p["machine_busy_pct"], 0),
+                ]
+            )
+        lines += [f"**{title}**", ""]
+        lines += _table(
+            [
+                "robots",
+                "published Hz/robot",
+                "poses/s",
+                "dropped",
+                "p50 ms",
+                "p99 ms",
+                "service ms/scan",
+                "service queue drops",
+                "service CPU %",
+                "service RSS MiB",
+                "load CPU %",
+                "subscriber CPU %",
+                "machine busy %",
+            ],
+            rows,
+        )
+        lines.append("")
+    lines += [f"![latency against robots]({img_rel}/{PLOT_LATENCY})", ""]
+    lines += _targets_table(scale["targets"])
+    prof = scale.get("profile")
+    if prof:
+        lines += _profile_block(prof)
+    return lines
+
+
+def _growth_section(growth: dict[str, Any] | None, img_rel: str) -> list[str]:
+    lines = ["", "## 3. Map growth", ""]
+    if not growth:
+        return [*lines, "Not run."]
+    if "error" in growth:
+        return [*lines, f"Not measured: {growth['error']}"]
+    grid_note = (
+        f"`OccupancyGrid.integrate` on {'keyframes' if growth['keyframes_only'] else 'every scan'}"
+        f" ({growth['grid_integrations']:,} integrations)"
+        if growth["grid"]
+        else "no occupancy grid (service/core/grid.py missing)"
+    )
+    lines += [
+        (
+            "One estimator and one occupancy grid, as in a mapping session, over "
+            f"{growth['length_m']:.0f} m ({growth['scans']:,} scans, one every "
+            f"{growth['spacing_m']} m; {'; '.join(growth['notes'])}). Per scan: "
+            f"`ManhattanEstimator.process`, then {grid_note}, as the service's session does. "
+            "The building's corridor loop is "
+            f"{growth['loop_length_m']:.0f} m, so a long run drives it again; the length is "
+            "chosen so that the last 10 % of the run covers the same corridors as the first "
+            "10 % (whole laps later): the two windows differ by the state accumulated in "
+            "between, not by the place. The grid stops growing once the loop is mapped; the "
+            "trajectory keeps growing. Memory is the growth of this process's RSS since the "
+            "start of the run. The verdict compares process CPU time per scan (wall time is "
+            "shown too): on this shared machine wall time also follows other users' load, "
+            "visible as steps in the plot."
+        ),
+        "",
+    ]
+    f10, l10 = growth["first_10pct"], growth["last_10pct"]
+    rows = [
+        [
+            "median per scan, estimator + grid (ms)",
+            _f(f10["median_ms"], 3),
+            _f(l10["median_ms"], 3),
+        ],
+        ["p99 per scan (ms)", _f(f10["p99_ms"], 3), _f(l10["p99_ms"], 3)],
+        [
+            "median CPU time per scan (ms)",
+            _f(growth["first_10pct_cpu"]["median_ms"], 3),
+            _f(growth["last_10pct_cpu"]["median_ms"], 3),
+        ],
+        ["mean per scan (ms)", _f(f10["mean_ms"], 3), _f(l10["mean_ms"], 3)],
+        [
+            "mean, estimator only (ms)",
+            _f(growth["first_10pct_estimator_mean_ms"], 3),
+            _f(growth["last_10pct_estimator_mean_ms"], 3),
+        ],
+        [
+            "mean, grid only (ms)",
+            _f(growth["first_10pct_grid_mean_ms"], 3),
+            _f(growth["last_10pct_grid_mean_ms"], 3),
+        ],
+        [
+            "map size (cells in the bounding box of known cells)",
+            _f(growth.get("grid_cells_after_first_10pct")),
+            _f(growth.get("grid_cells_end")),
+        ],
+        [
+            "RSS growth (MiB)",
+            _f(growth["rss_growth_mib_after_first_10pct"], 1),
+            _f(growth["rss_growth_mib_at_end"], 1),
+        ],
+    ]
+    lines += _table(["", "first 10 % of the run", "last 10 % of the run"], rows)
+    e = growth["errors"]
+    lines += [
+        "",
+        (
+            f"Trajectory over the whole run: ATE {e['ate_rmse_m']:.3f} m, end-pose error "
+            f"{e['end_error_m']:.3f} m, worst heading error {e['heading_err_max_deg']:.2f}°."
+        ),
+        "",
+        f"![time per scan over the run]({img_rel}/{PLOT_GROWTH})",
+        "",
+    ]
+    lines += _targets_table(growth["targets"])
+    lines += _profile_block(growth.get("profile"))
+    return lines
+
+
+def _accuracy_section(accuracy: dict[str, Any] | None, img_dir: Path, img_rel: str) -> list[str]:
+    lines = ["", "## 4. Accuracy", ""]
+    if not accuracy:
+        return [*lines, "Not run."]
+    if "error" in accuracy:
+        return [*lines, f"Not measured: {accuracy['error']}"]
+    text = accuracy["markdown"]
+    # The evaluation's map pictures live in bench/out (not committed): copy them beside ours.
+    for name, src in accuracy.get("pictures", {}).items():
+        if Path(src).is_file():
+            shutil.copyfile(src, img_dir / f"accuracy_{name}")
+            text = text.replace(f"`{name}`", f"[{name}]({img_rel}/accuracy_{name})")
+    # Demote the evaluation's headings below this section's.
+    text = re.sub(
+        r"^(#{1,5}) ", lambda mt: "#" * min(6, len(mt.group(1)) + 1) + " ", text, flags=re.M
+    )
+    lines += [
+        (
+            f"From `{accuracy['command']}` (the relation metric of Kümmerle et al. 2009 on the "
+            "real recordings, beside the published figures)."
+        ),
+        "",
+        text.strip(),
+    ]
+    return lines
+
+
+def render(res: dict[str, Any], doc_path: Path, img_dir: Path) -> str:
+    """Write the plots and the markdown; returns the markdown."""
+    img_dir.mkdir(parents=True, exist_ok=True)
+    img_rel = os.path.relpath(img_dir, doc_path.parent)
+    speed, scale, growth = res.get("speed"), res.get("scale"), res.get("growth")
+    if speed and "error" not in speed:
+        plot_speed(speed, img_dir / PLOT_SPEED)
+    if scale and any("error" not in p for p in scale["points"]):
+        plot_latency(scale, img_dir / PLOT_LATENCY)
+    if growth and "error" not in growth:
+        plot_growth(growth, img_dir / PLOT_GROWTH)
+    all_targets = [
+        t for sec in (speed, scale, growth) if sec and "targets" in sec for t in sec["targets"]
+    ]
+    lines = _header(res)
+    lines += ["", "## Targets", ""]
+    lines += _targets_table(all_targets) if all_targets else ["No target was measured."]
+    lines += _speed_section(speed, img_rel)
+    lines += _scale_section(scale, img_rel)
+    lines += _growth_section(growth, img_rel)
+    lines += _accuracy_section(res.get("accuracy"), img_dir, img_rel)
+    lines += _caveats()
+    text = "\n".join(lines).rstrip() + "\n"
+    doc_path.parent.mkdir(parents=True, exist_ok=True)
+    doc_path.write_text(text)
+    return text
