@@ -305,3 +305,17 @@ def runtime_fixture(runtime_factory: RuntimeFactory) -> MappingRuntime:
 def client_fixture(runtime: MappingRuntime) -> Iterator[TestClient]:
     with TestClient(create_app(runtime)) as c:
         yield c
+
+
+def feed(runtime: Any, robot: SimRobot, count: int) -> None:
+    """Submit `count` scans as the Zenoh callback would, and wait until they are processed.
+
+    Submits only while the robot's queue has room, so a slow (loaded) worker never makes the
+    queue drop scans, which would make the counts below depend on the machine's speed.
+    """
+    from clients.keyexpr import scan_key
+
+    for _ in range(count):
+        wait_for(lambda: runtime.ingest.pending() < 8, 60, "room in the ingest queue", 0.005)
+        runtime.ingest.submit(scan_key(robot.robot_id), robot.next_payload())
+    wait_for(lambda: runtime.ingest.pending() == 0, 60, "the ingest queue to drain")

@@ -16,6 +16,7 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
     RuntimeFactory,
     ServiceProc,
     SimRobot,
+    feed,
     runtime_factory_fixture,
     wait_for,
     zenoh_peer,
@@ -25,14 +26,7 @@ from clients.keyexpr import scan_key
 from clients.recording import RecordingWriter, iter_raw_records
 from clients.wire import Pose, Scan
 from service.app.errors import StoreError
-from service.app.runtime import MappingRuntime
 from service.app.sessions import MappingSession
-
-
-def feed(runtime: MappingRuntime, robot: SimRobot, count: int) -> None:
-    for _ in range(count):
-        runtime.ingest.submit(scan_key(robot.robot_id), robot.next_payload())
-    wait_for(lambda: runtime.ingest.pending() == 0, 60, "the ingest queue to drain")
 
 
 def recording_of(session: MappingSession) -> Path:

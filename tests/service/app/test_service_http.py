@@ -14,24 +14,17 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
     RuntimeFactory,
     SimRobot,
     client_fixture,
+    feed,
     runtime_factory_fixture,
     runtime_fixture,
     wait_for,
 )
 
-from clients.keyexpr import scan_key
 from service.app.api.app import create_app
 from service.app.errors import SettingsError
 from service.app.runtime import MappingRuntime
 from service.app.settings import build_settings
 from service.cli import build_parser
-
-
-def feed(runtime: MappingRuntime, robot: SimRobot, count: int) -> None:
-    """Submit `count` scans as the Zenoh callback would, and wait until they are processed."""
-    for _ in range(count):
-        runtime.ingest.submit(scan_key(robot.robot_id), robot.next_payload())
-    wait_for(lambda: runtime.ingest.pending() == 0, 60, "the ingest queue to drain")
 
 
 def test_session_lifecycle(client: TestClient) -> None:
