@@ -5,6 +5,7 @@ from __future__ import annotations
 import importlib.util
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -20,7 +21,7 @@ HAS_MPL = importlib.util.find_spec("matplotlib") is not None
 
 
 @pytest.fixture(scope="module")
-def tiny_results() -> dict[str, object]:
+def tiny_results() -> dict[str, Any]:
     speed_run = make_synthetic_run(1, max_scans=6)
     growth_run = make_synthetic_run(1, size="small", laps=0.04)
     return {
@@ -29,7 +30,7 @@ def tiny_results() -> dict[str, object]:
     }
 
 
-def test_speed_reports_every_method_on_the_same_scans(tiny_results: dict) -> None:
+def test_speed_reports_every_method_on_the_same_scans(tiny_results: dict[str, Any]) -> None:
     speed = tiny_results["speed"]
     names = [m["name"] for m in speed["methods"]]
     assert names[0] == "ours"
@@ -42,7 +43,7 @@ def test_speed_reports_every_method_on_the_same_scans(tiny_results: dict) -> Non
     assert {t["name"] for t in speed["targets"]} >= {"estimator median per 1,081-beam scan"}
 
 
-def test_growth_reports_both_ends_of_the_run(tiny_results: dict) -> None:
+def test_growth_reports_both_ends_of_the_run(tiny_results: dict[str, Any]) -> None:
     growth = tiny_results["growth"]
     assert growth["scans"] == len(growth["time_ms"]) == len(growth["distance_m"])
     assert growth["first_10pct"]["n"] >= 1
@@ -100,7 +101,7 @@ def test_collapse_stacks_shares() -> None:
 
 
 @pytest.mark.skipif(not HAS_MPL, reason="matplotlib (the bench extra) is not installed")
-def test_report_renders_with_plots(tiny_results: dict, tmp_path: Path) -> None:
+def test_report_renders_with_plots(tiny_results: dict[str, Any], tmp_path: Path) -> None:
     from bench.common import machine_info
     from bench.report import PLOT_GROWTH, PLOT_SPEED, render
 
