@@ -14,38 +14,19 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 import zenoh
-from conftest import REPO_ROOT, free_port
+from conftest import REPO_ROOT, free_port, wait_for
 
 from clients.keyexpr import scan_key
 from clients.wire import Scan, encode_scan
 from clients.zenoh_config import build_zenoh_config
 
 BIN = Path(sys.executable).parent
-
-
-def wait_for(
-    condition: Callable[[], object], timeout_s: float, what: str, period_s: float = 0.05
-) -> object:
-    """Poll `condition` until it returns something truthy; fail the test after the deadline."""
-    deadline = time.monotonic() + timeout_s
-    last_error: Exception | None = None
-    while time.monotonic() < deadline:
-        try:
-            result = condition()
-        except Exception as err:  # condition not ready yet (e.g. connection refused)
-            last_error = err
-        else:
-            if result:
-                return result
-        time.sleep(period_s)
-    pytest.fail(f"timed out after {timeout_s} s waiting for {what} (last error: {last_error!r})")
 
 
 def service_available() -> bool:

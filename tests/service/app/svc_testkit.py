@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from collections.abc import Callable, Iterator
 from functools import lru_cache
 from pathlib import Path
@@ -26,7 +25,7 @@ import msgpack
 import numpy as np
 import pytest
 import zenoh
-from conftest import REPO_ROOT, free_port
+from conftest import REPO_ROOT, free_port, wait_for
 from fastapi.testclient import TestClient
 
 from clients.wire import Scan, encode_scan
@@ -43,24 +42,6 @@ from service.app.settings import (
 )
 
 SCAN_PERIOD_NS = 25_000_000
-
-
-def wait_for(
-    condition: Callable[[], object], timeout_s: float, what: str, period_s: float = 0.05
-) -> object:
-    """Poll `condition` until truthy; fail the test after the deadline (no bare sleeps)."""
-    deadline = time.monotonic() + timeout_s
-    last_error: Exception | None = None
-    while time.monotonic() < deadline:
-        try:
-            result = condition()
-        except Exception as err:  # not ready yet (connection refused, 404, ...)
-            last_error = err
-        else:
-            if result:
-                return result
-        time.sleep(period_s)
-    pytest.fail(f"timed out after {timeout_s} s waiting for {what} (last error: {last_error!r})")
 
 
 @lru_cache(maxsize=4)
