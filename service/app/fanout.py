@@ -81,13 +81,15 @@ class PoseFanout:
 
     # -- worker side (any thread) --------------------------------------------------------------
 
-    def publish(self, pose: Pose) -> None:
+    def publish(self, pose: Pose, encoded: bytes | None = None) -> None:
+        """Send `pose` to Zenoh and the browser streams; `encoded` is `encode_pose(pose)` when
+        the caller already has it (the session records those bytes)."""
         if self._closed:
             return
         publisher = self._publisher(pose.robot_id)
         if publisher is not None:
             try:
-                publisher.put(encode_pose(pose))
+                publisher.put(encoded if encoded is not None else encode_pose(pose))
                 self._metrics.inc(POSES_PUBLISHED)
             except Exception as err:  # ZError when the session is closing
                 self._metrics.inc(POSE_PUBLISH_ERRORS)

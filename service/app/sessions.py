@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Final, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -132,6 +132,17 @@ class _Checkpoint:
 CHECKPOINT_FILE = "checkpoint.pickle"
 
 
+class Ingested(NamedTuple):
+    """What `MappingSession.ingest` did with a scan."""
+
+    accepted: bool
+    pose: Pose | None  # None when not accepted or when the estimator failed
+    pose_bytes: bytes | None  # `encode_pose(pose)`, as recorded
+
+
+_NOT_ACCEPTED: Final = Ingested(False, None, None)
+
+
 class MappingSession:
     # A restart replays only the scans after the last checkpoint; one a minute at 40 Hz
     # bounds that replay to about a minute of estimator time.
@@ -168,26 +179,29 @@ class MappingSession:
 
     # -- the hot path (ingest worker) ---------------------------------------------------------
 
-    def ingest(self, payload: bytes, scan: Scan) -> tuple[bool, Pose | None]:
-        """Record, estimate and map one validated scan: (accepted, new pose or None).
+    def ingest(self, payload: bytes, scan: Scan) -> Ingested:
+        """Record, estimate and map one validated scan.
 
         Not accepted, and nothing recorded, when the session is no longer active. An accepted
-        scan has no pose only if the estimator failed on it.
+        scan has no pose only if the estimator failed on it. The pose comes with its wire
+        encoding, the bytes just recorded, so that publishing does not encode it again.
         """
         with self.lock:
             if not self.is_active:
-                return False, None
+                return _NOT_ACCEPTED
             self._store.append(payload)  # durable before it counts
             self._records += 1
             self.scans_accepted += 1
             pose = self._estimate(scan)
+            encoded: bytes | None = None
             if pose is not None:
-                self._store.append(encode_pose(pose))
+                encoded = encode_pose(pose)
+                self._store.append(encoded)
                 self._records += 1
                 self._poses.append(pose)
             if self.scans_accepted - self._checkpoint_scans >= self.checkpoint_every_scans:
                 self._write_checkpoint()
-            return True, pose
+            return Ingested(True, pose, encoded)
 
     def _estimate(self, scan: Scan) -> Pose | None:
         """Run estimator and grid on `scan` (lock held). None if the estimator failed."""

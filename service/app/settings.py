@@ -60,6 +60,11 @@ class IngestSettings(_Frozen):
         default=1024, ge=1, description="robots tracked at once (queues, workers)"
     )
     max_payload_bytes: int = Field(default=1 << 20, ge=1024)
+    # Threads that process scans, round-robin over robots. One is fastest: the work holds the
+    # GIL, and more threads only trade it back and forth (see service/app/ingest.py).
+    workers: int = Field(
+        default=1, ge=1, le=64, description="ingest worker threads (round-robin over robots)"
+    )
 
 
 class SecuritySettings(_Frozen):
@@ -149,6 +154,7 @@ def build_settings(
             queue_depth="QUEUE_DEPTH",
             max_robots="MAX_ROBOTS",
             max_payload_bytes="MAX_PAYLOAD_BYTES",
+            workers="INGEST_WORKERS",
         ),
         "security": {
             "token": getattr(args, "token", None) or _env(env, "TOKEN"),

@@ -173,7 +173,8 @@ class OccupancyGrid:
         free_local = np.flatnonzero(mark == 1)
         hit_local = np.flatnonzero(mark == 2)
         local = np.concatenate((free_local, hit_local))
-        flat = self._flat_indices(local // width + i0, local % width + j0)
+        rows, cols = np.divmod(local, width)
+        flat = self._flat_indices(rows + i0, cols + j0)
         free_flat, hit_flat = flat[: free_local.shape[0]], flat[free_local.shape[0] :]
 
         cells = self._store.reshape(-1)
@@ -205,20 +206,20 @@ class OccupancyGrid:
         ti = ci >> TILE_SHIFT
         tj = cj >> TILE_SHIFT
         self._ensure_index(int(ti.min()), int(ti.max()), int(tj.min()), int(tj.max()))
-        li = ti - self._index_ti0
-        lj = tj - self._index_tj0
-        slots = self._index[li, lj]
+        # Flat positions in the tile index: one 1-D gather is cheaper than 2-D fancy indexing.
+        keys = (ti - self._index_ti0) * self._index.shape[1] + (tj - self._index_tj0)
+        index_flat = self._index.reshape(-1)
+        slots = index_flat[keys]
         missing = slots == 0
         if missing.any():
-            width = self._index.shape[1]
-            new_keys = np.unique(li[missing] * width + lj[missing])
+            new_keys = np.unique(keys[missing])
             first_slot = self._n_tiles
             self._reserve(first_slot + new_keys.shape[0])
-            self._index.reshape(-1)[new_keys] = np.arange(
+            index_flat[new_keys] = np.arange(
                 first_slot, first_slot + new_keys.shape[0], dtype=np.int32
             )
             self._n_tiles += int(new_keys.shape[0])
-            slots = self._index[li, lj]
+            slots = index_flat[keys]
         local = ((ci & _TILE_MASK) << TILE_SHIFT) | (cj & _TILE_MASK)
         flat: IntArray = slots.astype(np.int64) * _TILE_SIZE + local
         return flat

@@ -134,6 +134,72 @@ def test_full_queue_drops_oldest_and_never_blocks_the_callback(
     assert stamps == [robot_stamps[0], *robot_stamps[41 - depth :]]
 
 
+class RecordingEstimator:
+    """The real estimator, noting which robot each scan belonged to; the first waits for a gate."""
+
+    def __init__(self, robot_id: str, order: list[str], gate: threading.Event) -> None:
+        self._inner = default_estimator_factory(True)
+        self._robot_id = robot_id
+        self._order = order
+        self._gate = gate
+
+    def process(self, scan: LaserScan) -> PoseEstimate:
+        self._order.append(self._robot_id)
+        self._gate.wait(30)
+        return self._inner.process(scan)
+
+    def reset(self) -> None:
+        self._inner.reset()
+
+
+def test_one_worker_serves_robots_round_robin_each_in_order(
+    runtime_factory: RuntimeFactory,
+) -> None:
+    runtime = runtime_factory(queue_depth=64, workers=1)
+    order: list[str] = []
+    gate = threading.Event()
+    ids = iter(["ra", "rb", "rc"])
+    runtime.sessions._engine = Engine(
+        make_estimator=lambda _: RecordingEstimator(next(ids), order, gate)
+    )
+    sessions = {r: runtime.sessions.create(r, 0.05, True) for r in ("ra", "rb", "rc")}
+    robots = {r: SimRobot(r) for r in sessions}
+    payloads = {r: [robot.next_payload() for _ in range(10)] for r, robot in robots.items()}
+    # ra's whole burst arrives first, while the worker is held inside ra's first scan.
+    for r in ("ra", "rb", "rc"):
+        for payload in payloads[r]:
+            runtime.ingest.submit(scan_key(r), payload)
+        if r == "ra":
+            wait_for(lambda: order == ["ra"], 10, "the worker to start on ra's first scan")
+    gate.set()
+    drain(runtime)
+    # One scan per turn, the robot just served goes to the back of the line.
+    assert order == ["ra"] + ["rb", "rc", "ra"] * 9 + ["rb", "rc"]
+    for r, session in sessions.items():
+        poses = session.trajectory()
+        assert [p.seq for p in poses] == list(range(10)), r
+        assert [p.stamp_ns for p in poses] == sorted(p.stamp_ns for p in poses), r
+
+
+def test_a_second_worker_serves_other_robots_while_one_is_busy(
+    runtime_factory: RuntimeFactory,
+) -> None:
+    gate, entered = threading.Event(), threading.Event()
+    runtime = runtime_factory(queue_depth=32, workers=2)
+    slow = runtime.sessions.create("slow", 0.05, True)
+    fast = runtime.sessions.create("fast", 0.05, True)
+    slow._estimator = BlockingEstimator(gate, entered)
+    runtime.ingest.submit(scan_key("slow"), SimRobot("slow").next_payload())
+    assert entered.wait(10), "one worker should be inside the gated estimator"
+    robot = SimRobot("fast")
+    for _ in range(5):
+        runtime.ingest.submit(scan_key("fast"), robot.next_payload())
+    wait_for(lambda: fast.info().scans_accepted == 5, 60, "the other worker to map 'fast'")
+    gate.set()
+    drain(runtime)
+    assert slow.info().scans_accepted == 1
+
+
 def test_robot_limit(runtime_factory: RuntimeFactory) -> None:
     runtime = runtime_factory(max_robots=2)
     for rid in ("r1", "r2", "r3", "r4"):
