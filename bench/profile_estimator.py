@@ -1,12 +1,13 @@
 """Estimator speed and regression check on fixed sequences (a developer tool, not the report).
 
-    python -m bench.profile_estimator [--synthetic N] [--aces N] [--repeat N] [--profile]
+    python -m bench.profile_estimator [--synthetic N] [--aces N] [--live N] [--repeat N] [--profile]
                                       [--baseline N] [--record FILE.npz] [--compare FILE.npz]
                                       [--against DIR]
 
 Sequences (all scans are prepared before timing):
 - synthetic: paper-size building seed 0, UTM-30LX (1,081 beams), 0.3 m spacing, no odometry;
-- aces-noodom / aces-odom: the first N ACES scans (180 beams), without / with odometry.
+- aces-noodom / aces-odom: the first N ACES scans (180 beams), without / with odometry;
+- live-40hz: UTM-30LX scans at 40 Hz along the simulator's robot motion (the load generator's).
 
 Prints median / p99 ms per scan for each, optionally a cProfile top-20 over all of them, and
 records or compares the poses and flags (max position / heading difference, flag mismatches).
@@ -67,6 +68,13 @@ def synthetic_scans(n: int, seed: int = 0) -> list[LaserScan]:
             )
         )
     return out
+
+
+def live_scans(n: int, seed: int = 1) -> list[LaserScan]:
+    """`n` scans at 40 Hz along the simulator's continuous motion: what the load generator sends."""
+    from bench import loadgen
+
+    return loadgen._path_scans(seed, n, 1.0 / 40.0)
 
 
 def aces_scans(n: int, use_odometry: bool) -> list[LaserScan]:
@@ -133,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--synthetic", type=int, default=400)
     ap.add_argument("--aces", type=int, default=1000)
+    ap.add_argument("--live", type=int, default=0, help="N scans at 40 Hz (the live path)")
     ap.add_argument("--repeat", type=int, default=1, help="timed passes (best median kept)")
     ap.add_argument("--profile", action="store_true")
     ap.add_argument(
@@ -147,6 +156,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.aces > 0:
         seqs["aces-noodom"] = aces_scans(a.aces, False)
         seqs["aces-odom"] = aces_scans(a.aces, True)
+    if a.live > 0:
+        seqs["live-40hz"] = live_scans(a.live)
     seqs = {k: v for k, v in seqs.items() if v}
 
     results: dict[str, np.ndarray] = {}

@@ -227,6 +227,56 @@ def _circular_peaks(scores: FloatArray) -> npt.NDArray[np.int64]:
     return peaks.astype(np.int64)
 
 
+_FINE_FIRST_STEPS = 7  # the fine peak is within ±0.6° of the 1° coarse peak (measured)
+_TRACK_FIRST_STEPS = 3  # a steady prediction is within a few tenths of a degree
+
+
+def _fine_search(
+    pts: FloatArray,
+    centre_rad: float,
+    *,
+    step_rad: float,
+    bin_m: float,
+    score: str,
+    half_rad: float,
+    first_steps: int = _FINE_FIRST_STEPS,
+) -> tuple[FloatArray, FloatArray]:
+    """Scores at `centre + k·step`, |k·step| <= half_rad, around the maximum nearest the centre.
+
+    Starts with ±`first_steps` and extends a side only while the maximum sits on its edge, so
+    the usual case scores a fraction of the angles of the whole window.
+    """
+    n_half = max(1, round(half_rad / step_rad))
+    lo = hi = min(n_half, first_steps)
+    ks = np.arange(-lo, hi + 1, dtype=np.float64)
+    scores = heading_scores(pts, centre_rad + step_rad * ks, bin_m, score)
+    while True:
+        i = int(np.argmax(scores))
+        if i == 0 and lo < n_half:
+            more = np.arange(-min(n_half, lo + _FINE_FIRST_STEPS), -lo, dtype=np.float64)
+            lo = -int(more[0])
+            ks = np.concatenate((more, ks))
+            scores = np.concatenate(
+                (heading_scores(pts, centre_rad + step_rad * more, bin_m, score), scores)
+            )
+        elif i == ks.shape[0] - 1 and hi < n_half:
+            more = np.arange(hi + 1, min(n_half, hi + _FINE_FIRST_STEPS) + 1, dtype=np.float64)
+            hi = int(more[-1])
+            ks = np.concatenate((ks, more))
+            scores = np.concatenate(
+                (scores, heading_scores(pts, centre_rad + step_rad * more, bin_m, score))
+            )
+        else:
+            return centre_rad + step_rad * ks, scores
+
+
+def _within(points_xy_m: FloatArray, max_range_m: float) -> FloatArray:
+    """The points within `max_range_m` (all of them when fewer than 10 are)."""
+    r2 = points_xy_m[:, 0] ** 2 + points_xy_m[:, 1] ** 2
+    near = points_xy_m.take(np.flatnonzero(r2 <= max_range_m**2), axis=0)
+    return near if near.shape[0] >= 10 else points_xy_m
+
+
 def measure_heading(
     points_xy_m: FloatArray,
     predicted_rad: float | None,
@@ -255,9 +305,7 @@ def measure_heading(
     `coarse_half_rad` < 45° with a prediction: the coarse search covers only that much around
     it (a tight prior makes farther peaks lose anyway; speed).
     """
-    r2 = points_xy_m[:, 0] ** 2 + points_xy_m[:, 1] ** 2
-    near = points_xy_m.take(np.flatnonzero(r2 <= max_range_m**2), axis=0)
-    pts = near if near.shape[0] >= 10 else points_xy_m
+    pts = _within(points_xy_m, max_range_m)
     windowed = (
         predicted_rad is not None and prior_sigma_rad > 0.0 and coarse_half_rad < QUARTER / 2.0
     )
@@ -307,9 +355,45 @@ def measure_heading(
             same_points, contrast=contrast, rival_ratio=rival_ratio, prior_offset_rad=prior_offset
         )
 
-    n_half = max(1, round(fine_half_rad / step_rad))
-    angles = float(coarse[chosen]) + step_rad * np.arange(-n_half, n_half + 1, dtype=np.float64)
-    scores = heading_scores(pts, angles, bin_m, score)
+    angles, scores = _fine_search(
+        pts,
+        float(coarse[chosen]),
+        step_rad=step_rad,
+        bin_m=bin_m,
+        score=score,
+        half_rad=fine_half_rad,
+    )
+    return _fine_measurement(
+        pts,
+        angles,
+        scores,
+        step_rad=step_rad,
+        bin_m=bin_m,
+        refine=refine,
+        predicted_rad=predicted_rad,
+        contrast=contrast,
+        rival_ratio=rival_ratio,
+        # Only the whole-range curve can serve another prior.
+        coarse_scores=None if windowed else s_coarse,
+        coarse_index=-1 if windowed else chosen,
+    )
+
+
+def _fine_measurement(
+    pts: FloatArray,
+    angles: FloatArray,
+    scores: FloatArray,
+    *,
+    step_rad: float,
+    bin_m: float,
+    refine: bool,
+    predicted_rad: float | None,
+    contrast: float,
+    rival_ratio: float,
+    coarse_scores: FloatArray | None = None,
+    coarse_index: int = -1,
+) -> HeadingMeasurement:
+    """The measurement at the best fine angle (parabolic sub-step) and its peak fraction."""
     i = int(np.argmax(scores))
     offset = 0.0
     if refine and 0 < i < len(angles) - 1:
@@ -318,6 +402,7 @@ def measure_heading(
     hx, hy = _projection_histograms(pts, np.array([best]), bin_m, soft=False)
     mx, my = float(hx.max()), float(hy.max())
     n = max(1, pts.shape[0])
+    pred_q = float(wrap_quarter(predicted_rad)) if predicted_rad is not None else 0.0
     return HeadingMeasurement(
         angle_rad=best,
         peak_fraction=(mx + my) / n,
@@ -325,9 +410,52 @@ def measure_heading(
         rival_ratio=rival_ratio,
         prior_offset_rad=float(wrap_quarter(best - pred_q)) if predicted_rad is not None else 0.0,
         major_axis=0 if mx >= my else 1,
-        # Only the whole-range curve can serve another prior.
-        coarse_scores=None if windowed else s_coarse,
-        coarse_index=-1 if windowed else chosen,
+        coarse_scores=coarse_scores,
+        coarse_index=coarse_index,
+    )
+
+
+def track_heading(
+    points_xy_m: FloatArray,
+    predicted_rad: float,
+    step_rad: float,
+    bin_m: float,
+    *,
+    score: str = "energy",
+    fine_half_rad: float = math.radians(1.5),
+    refine: bool = True,
+    max_range_m: float = 12.0,
+) -> HeadingMeasurement | None:
+    """The paper's fine search alone, around the predicted heading: steady motion, fast scans.
+
+    When the Manhattan angle was measured on the previous scan and the robot is not turning,
+    the coarse 90° search only finds the peak it already knows. Returns None when the best
+    angle lies on the edge of ±`fine_half_rad` (the heading moved more than predicted): then
+    `measure_heading` must search.
+    """
+    pts = _within(points_xy_m, max_range_m)
+    angles, scores = _fine_search(
+        pts,
+        float(wrap_quarter(predicted_rad)),
+        step_rad=step_rad,
+        bin_m=bin_m,
+        score=score,
+        half_rad=fine_half_rad,
+        first_steps=_TRACK_FIRST_STEPS,
+    )
+    i = int(np.argmax(scores))
+    if i in (0, scores.shape[0] - 1):
+        return None
+    return _fine_measurement(
+        pts,
+        angles,
+        scores,
+        step_rad=step_rad,
+        bin_m=bin_m,
+        refine=refine,
+        predicted_rad=predicted_rad,
+        contrast=1.0,
+        rival_ratio=0.0,
     )
 
 

@@ -37,6 +37,9 @@ class EstimatorParams:
     heading_coarse_bin_m: float = 0.05
     heading_coarse_window_sigmas: float = 6.0  # coarse search ± this × prior σ (0: all 90°)
     heading_max_range_m: float = 12.0  # heading uses the points within this range
+    heading_tracking_max_turn_deg: float = 2.0  # predicted turn per scan below this, on a
+    # measured heading: the fine search alone around the prediction (0: always search) ...
+    heading_tracking_max_period_s: float = 0.1  # ... when scans come at least this often
     max_speed_m_s: float = 2.0  # clamp of the constant-velocity model
     max_turn_rate_deg_s: float = 120.0
     max_accel_m_s2: float = 0.5  # bound on the constant-velocity model's change (0: none)
@@ -45,6 +48,8 @@ class EstimatorParams:
     turn_rate_decay: float = 0.5  # per scan, while the heading is a fallback (not measured)
     translation_window_pred_m: float = 0.4  # ± translation search around the prediction
     translation_window_odom_m: float = 0.25  # ± around an odometry prediction
+    bounded_search: bool = True  # windows no wider than 2 × max speed × the scan period
+    translation_window_min_m: float = 0.1  # ... but at least this
     translation_prior_sigma_m: float = 0.1  # trust in a constant-velocity prediction (0: none)
     translation_prior_sigma_odom_m: float = 0.06  # trust in an odometry prediction
     subbin_refinement: bool = True  # parabolic peak refinement (heading and translation)

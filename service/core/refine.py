@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from service.core.types import FloatArray
+from service.core.types import FloatArray, column_bounds
 
 _OFFSET = 1 << 20  # keeps cell indices positive within ±52 km at 0.1 m
 _STRIDE = 1 << 21
@@ -35,8 +35,9 @@ class OccupiedCells:
             return
         # Two cells of margin: the dilation reaches one, so the border rows and columns stay
         # free and a query clipped onto the border reads "free".
-        lo = c.min(axis=0) - 2
-        hi = c.max(axis=0) + 2
+        x0, y0, x1, y1 = column_bounds(c)
+        lo = np.array([x0 - 2, y0 - 2], dtype=np.int64)
+        hi = np.array([x1 + 2, y1 + 2], dtype=np.int64)
         h, w = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
         if h * w <= _MAX_BITMAP_CELLS:
             self._origin = lo

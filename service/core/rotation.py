@@ -35,6 +35,7 @@ def tangent_directions(
     d = points_xy_m[4:] - points_xy_m[:-4]
     near = np.hypot(*np.diff(points_xy_m, axis=0).T) < max_gap_m
     good = near[:-3] & near[1:-2] & near[2:-1] & near[3:]
+    good &= np.abs(d).sum(axis=1) > 1e-6  # coincident neighbours have no direction
     ang[2:-2] = np.arctan2(d[:, 1], d[:, 0]) % math.pi
     ok[2:-2] = good
     return ang, ok
@@ -48,13 +49,18 @@ def direction_histogram(directions_rad: FloatArray) -> FloatArray:
     return np.asarray(np.convolve(padded, _SMOOTH, mode="valid"), dtype=np.float64)
 
 
+def direction_spectrum(directions_rad: FloatArray) -> npt.NDArray[np.complex128]:
+    """Spectrum of the direction histogram: a reference for `match_rotation`, kept per map."""
+    return np.asarray(np.fft.rfft(direction_histogram(directions_rad)), dtype=np.complex128)
+
+
 def match_rotation(
-    ref_hist: FloatArray,
+    ref_spectrum: npt.NDArray[np.complex128],
     cur_directions_rad: FloatArray,
     predicted_rad: float,
     half_window_rad: float,
 ) -> tuple[float, float]:
-    """Heading that best aligns the current directions with the reference histogram.
+    """Heading that best aligns the current directions with the reference (its spectrum).
 
     Returns (heading_rad, contrast) where contrast in [0, 1] compares the peak with the mean
     of the window (0 = flat).
@@ -62,7 +68,7 @@ def match_rotation(
     # Circular cross-correlation of the two direction histograms (all shifts at once), then
     # the window around the prediction and a parabolic sub-bin peak.
     cur_hist = direction_histogram(cur_directions_rad)
-    corr = np.fft.irfft(np.fft.rfft(ref_hist) * np.conj(np.fft.rfft(cur_hist)), n=_N_BINS)
+    corr = np.fft.irfft(ref_spectrum * np.conj(np.fft.rfft(cur_hist)), n=_N_BINS)
     # corr[k] = Σ_i ref[i + k] · cur[i]: the current directions rotated by k bins.
     n_half = max(1, round(half_window_rad / _BIN_RAD))
     centre = predicted_rad / _BIN_RAD

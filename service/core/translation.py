@@ -18,6 +18,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 
 from service.core.heading import parabolic_offset
@@ -25,32 +26,25 @@ from service.core.types import FloatArray
 
 
 def orientation_weights(
-    points_xy_m: FloatArray, max_gap_m: float = 0.3, isolated_weight: float = 0.15
+    directions_rad: FloatArray,
+    reliable: npt.NDArray[np.bool_],
+    theta_rad: float,
+    isolated_weight: float = 0.15,
 ) -> FloatArray:
     """(M, 2) weights: column 0 = how much a point constrains x, column 1 = y.
 
-    The local wall direction comes from the neighbours two points away in scan order (the points
-    must already be in the map orientation). A wall along y (vertical tangent) constrains x:
-    w_x = sin²β, w_y = cos²β with β the tangent angle. Points without close neighbours vote
-    0.5 on both axes.
+    `directions_rad` are the points' surface directions in the laser frame
+    (`rotation.tangent_directions`); `theta_rad` turns them into the map frame. A wall along y
+    (tangent angle β = 90°) constrains x: w_x = sin²β, w_y = cos²β, sharpened. Points without
+    a reliable direction (no close neighbours) vote `isolated_weight` on both axes.
     """
-    m = points_xy_m.shape[0]
-    w = np.full((m, 2), isolated_weight)
-    if m < 5:
-        return w
-    d = points_xy_m[4:] - points_xy_m[:-4]
-    length = np.hypot(d[:, 0], d[:, 1])
-    ok = (length > 1e-6) & (length < 4.0 * max_gap_m)
-    # A wall point also needs its two immediate neighbours close (no depth jump in between).
-    near = np.hypot(*np.diff(points_xy_m, axis=0).T) < max_gap_m
-    ok &= near[:-3] & near[1:-2] & near[2:-1] & near[3:]
-    safe = np.where(ok, length, 1.0)
-    s2 = (d[:, 1] / safe) ** 2
-    # Sharpen: a tangent within ~20° of an axis votes (almost) only for the other axis.
-    wx = np.minimum(np.maximum((s2 - 0.5) * 1.6 + 0.5, 0.0), 1.0)
-    wy = np.minimum(np.maximum(((1.0 - s2) - 0.5) * 1.6 + 0.5, 0.0), 1.0)
-    w[2:-2, 0] = np.where(ok, wx, isolated_weight)
-    w[2:-2, 1] = np.where(ok, wy, isolated_weight)
+    s2 = np.sin(directions_rad + theta_rad)
+    s2 *= s2
+    # Sharpen: a tangent within ~25° of an axis votes only for the other axis.
+    w = np.empty((s2.shape[0], 2))
+    np.clip((s2 - 0.5) * 1.6 + 0.5, 0.0, 1.0, out=w[:, 0])
+    np.clip(0.5 - (s2 - 0.5) * 1.6, 0.0, 1.0, out=w[:, 1])
+    w[~reliable] = isolated_weight
     return w
 
 
@@ -65,57 +59,92 @@ class AxisMatch:
     ambiguous: bool
 
 
-def correlate_axis(  # noqa: PLR0917 - the paper's equation, argument for argument
+@dataclass(frozen=True, slots=True)
+class AxisDensity:
+    """A reference's density along one map axis, ready for every shift of every scan.
+
+    The reference points are binned at the shift step and smoothed by the paper's bin once per
+    reference (the local map changes only with a keyframe), with `pad` zero bins on each side so
+    that a window of up to ±`max_half_steps` shifts that starts outside reads only zeros.
+    """
+
+    origin_m: float  # coordinate of bin 0's lower edge (a multiple of step_m)
+    step_m: float
+    max_half_steps: int  # the widest window it serves, in steps each side
+    values: FloatArray
+
+
+def axis_density(
     ref_coords_m: FloatArray,
     ref_weights: FloatArray,
+    step_m: float,
+    bin_m: float,
+    max_half_window_m: float,
+) -> AxisDensity:
+    """Bin the reference at `step_m` and smooth it by the `bin_m` triangle.
+
+    Binning both scans at `bin_m` and averaging over the bin phase gives a triangle of
+    half-width `bin_m`: peaked, so the sub-step refinement works (a plain box would give a
+    flat-topped correlation). The triangle is a box convolved with itself, so it is two running
+    sums.
+    """
+    half = max(1, round(bin_m / step_m))
+    max_half_steps = max(1, round(max_half_window_m / step_m))
+    pad = 2 * max_half_steps + 2 * half + 2  # > any window (2·max_half_steps + 1) + the smoothing
+    if ref_coords_m.shape[0] == 0:
+        return AxisDensity(0.0, step_m, max_half_steps, np.zeros(2 * pad))
+    lo_bin = math.floor(float(ref_coords_m.min()) / step_m) - pad
+    hi_bin = math.floor(float(ref_coords_m.max()) / step_m) + pad
+    origin_m = lo_bin * step_m
+    n_bins = hi_bin - lo_bin + 1
+    idx = np.floor((ref_coords_m - origin_m) / step_m).astype(np.intp)
+    raw = np.bincount(idx, weights=ref_weights, minlength=n_bins)[:n_bins]
+    # Box of `half + 1` bins twice = the triangle 1 - |t| / (half + 1), |t| <= half, centred.
+    width = half + 1
+    values = raw
+    for lead in (half // 2 + half % 2, half // 2):  # the two boxes' centring adds up to `half`
+        c = np.concatenate((np.zeros(width), np.cumsum(values)))
+        boxed = c[width:] - c[:-width]  # boxed[j] = Σ values[j - width + 1 .. j]
+        values = np.concatenate((boxed[lead:], np.zeros(lead)))
+    return AxisDensity(
+        origin_m, step_m, max_half_steps, np.asarray(values / width, dtype=np.float64)
+    )
+
+
+def correlate_axis(
+    density: AxisDensity,
     cur_coords_m: FloatArray,
     cur_weights: FloatArray,
     centre_m: float,
     half_window_m: float,
-    step_m: float,
-    bin_m: float,
 ) -> tuple[FloatArray, FloatArray]:
-    """E(shift) for shifts `centre + k·step` within ±half_window.
+    """E(shift) for shifts `centre + k·step` within ±half_window (paper eq. 1/2).
 
     `cur_coords_m` are current points' coordinates before the shift; E(s) is the correlation of
-    the current histogram shifted by s with the reference histogram (paper eq. 1/2).
+    the current histogram shifted by s with the reference histogram: the reference density read
+    at every shifted current point, weighted.
     """
-    n_half = max(1, round(half_window_m / step_m))
+    step_m = density.step_m
+    n_half = max(1, min(round(half_window_m / step_m), density.max_half_steps))
     shifts = centre_m + step_m * np.arange(-n_half, n_half + 1, dtype=np.float64)
-    lo = min(float(ref_coords_m.min()), float(cur_coords_m.min()) + float(shifts[0])) - bin_m
-    hi = max(float(ref_coords_m.max()), float(cur_coords_m.max()) + float(shifts[-1])) + bin_m
-    n_bins = math.ceil((hi - lo) / step_m) + 2
-    ref_idx = np.floor((ref_coords_m - lo) / step_m).astype(np.int64)
-    dens = np.asarray(
-        np.bincount(ref_idx, weights=ref_weights, minlength=n_bins)[:n_bins], dtype=np.float64
-    )
-    # Smooth by the paper's bin. Binning both scans at `bin_m` and averaging over the bin
-    # phase gives a triangle of half-width `bin_m`: peaked, so the sub-step refinement works
-    # (a plain box would give a flat-topped correlation). Only the bins the shifted current
-    # points reach are smoothed (same values as smoothing the whole density).
-    half = max(1, round(bin_m / step_m))
-    tri = 1.0 - np.abs(np.arange(-half, half + 1)) / (half + 1)
-    base = (cur_coords_m + shifts[0] - lo) / step_m
-    base_idx = np.floor(base).astype(np.intp)
     k = shifts.shape[0]
-    first = min(max(int(base_idx.min()), 0), n_bins - 1)
-    last = min(max(int(base_idx.max()) + k - 1, first), n_bins - 1)
-    padded = np.zeros(last - first + 1 + 2 * half)
-    src_lo, src_hi = max(first - half, 0), min(last + half + 1, n_bins)
-    padded[src_lo - (first - half) : src_hi - (first - half)] = dens[src_lo:src_hi]
-    dens = np.asarray(np.convolve(padded, tri, mode="valid"), dtype=np.float64)
-    # Gather the density at every shifted current point: row i = dens[b_i : b_i + K], (M, K).
-    start = base_idx - first
-    if int(start.min()) >= 0 and int(start.max()) + k <= dens.shape[0]:
-        # Every window lies inside (the margins of lo/hi guarantee it): one fancy index of a
-        # sliding-window view, no (M, K) index array.
-        step_b = dens.strides[0]
-        windows = as_strided(dens, (dens.shape[0] - k + 1, k), (step_b, step_b), writeable=False)
-        vals = windows[start]
-    else:  # defensive: clip indices to the bins, as a histogram edge would
-        idx = start[:, None] + np.arange(k, dtype=np.intp)[None, :]
-        vals = np.take(dens, idx, mode="clip")
-    energy = cur_weights @ vals
+    dens = density.values
+    n_starts = dens.shape[0] - k + 1
+    # Points that do not constrain this axis add nothing, and points in the same fine bin add
+    # the same row: gather each occupied bin once with the summed weight.
+    voting = np.flatnonzero(cur_weights > 0.0)
+    start = np.floor((cur_coords_m[voting] + (shifts[0] - density.origin_m)) / step_m)
+    inside = (start >= 0.0) & (start < n_starts)  # outside: every shift reads zero padding
+    start_i = start[inside].astype(np.intp)
+    if start_i.shape[0] == 0:
+        return shifts, np.zeros(k, dtype=np.float64)
+    s0 = int(start_i.min())
+    summed = np.bincount(start_i - s0, weights=cur_weights[voting][inside])
+    occupied = np.flatnonzero(summed)
+    # Row i of the sliding-window view = dens[b_i : b_i + K]: one fancy index, (M', K).
+    step_b = dens.strides[0]
+    windows = as_strided(dens, (n_starts, k), (step_b, step_b), writeable=False)
+    energy = summed[occupied] @ windows[occupied + s0]
     return shifts, np.asarray(energy, dtype=np.float64)
 
 

@@ -10,7 +10,7 @@ import pytest
 from service.core import refine
 from service.core.heading import _median, heading_scores
 from service.core.refine import OccupiedCells
-from service.core.translation import correlate_axis
+from service.core.translation import axis_density, correlate_axis
 from service.core.types import FloatArray
 
 
@@ -48,22 +48,30 @@ def test_correlate_axis_matches_per_shift_gather() -> None:
     for _ in range(30):
         ref = rng.uniform(-20.0, 20.0, int(rng.integers(10, 2000)))
         ref_w = np.asarray(rng.random(ref.shape[0]), dtype=np.float64)
-        cur = rng.uniform(-20.0, 20.0, int(rng.integers(10, 500)))
+        cur = rng.uniform(-21.0, 21.0, int(rng.integers(10, 500)))
         cur_w = np.asarray(rng.random(cur.shape[0]), dtype=np.float64)
+        cur_w[rng.random(cur.shape[0]) < 0.3] = 0.0  # points that do not vote on this axis
         centre = float(rng.uniform(-1.0, 1.0))
-        shifts, energy = correlate_axis(ref, ref_w, cur, cur_w, centre, 0.4, 0.005, 0.03)
+        density = axis_density(ref, ref_w, 0.005, 0.03, 0.8)
+        shifts, energy = correlate_axis(density, cur, cur_w, centre, 0.4)
         # The definition: reference density at 0.005 m, smoothed by the 0.03 m triangle over
-        # the whole axis, read at every shifted current point.
-        lo = min(float(ref.min()), float(cur.min()) + float(shifts[0])) - 0.03
-        hi = max(float(ref.max()), float(cur.max()) + float(shifts[-1])) + 0.03
+        # the whole axis, read at every shifted current point (zero outside the reference).
+        lo = math.floor((min(ref.min(), cur.min() + shifts[0]) - 1.0) / 0.005) * 0.005
+        hi = max(ref.max(), cur.max() + shifts[-1]) + 1.0
         n_bins = math.ceil((hi - lo) / 0.005) + 2
         raw = np.bincount(np.floor((ref - lo) / 0.005).astype(np.int64), ref_w, n_bins)
         tri = 1.0 - np.abs(np.arange(-6, 7)) / 7.0
         dens = np.convolve(raw, tri, mode="same")
         base = np.floor((cur + shifts[0] - lo) / 0.005).astype(np.int64)
-        k = shifts.shape[0]
-        want = np.array([cur_w @ dens[np.clip(base + j, 0, n_bins - 1)] for j in range(k)])
-        np.testing.assert_allclose(energy, want, rtol=1e-12, atol=1e-12)
+        want = np.array([cur_w @ dens[base + j] for j in range(shifts.shape[0])])
+        np.testing.assert_allclose(energy, want, rtol=1e-9, atol=1e-9)
+
+
+def test_axis_density_of_no_points_reads_zero() -> None:
+    density = axis_density(np.empty(0), np.empty(0), 0.005, 0.03, 0.8)
+    shifts, energy = correlate_axis(density, np.array([0.1, 5.0]), np.ones(2), 0.0, 0.4)
+    assert shifts.shape == energy.shape == (161,)
+    assert not energy.any()
 
 
 def test_occupied_cells_bitmap_matches_sorted_keys(monkeypatch: pytest.MonkeyPatch) -> None:
