@@ -210,6 +210,21 @@ class ManhattanEstimator:
             return None
         return max(*self._periods_s, (scan.stamp_ns - self._stamp_ns) * 1e-9)
 
+    def _fast_steady_scans(self, scan: LaserScan, max_period_s: float) -> bool:
+        """This scan and the recent ones came at most `max_period_s` apart, at a steady rate.
+
+        Steady: the short recent periods are at least half the median, which rules out bursty
+        logged stamps (Intel: 1 ms then 0.5 s) where a short stamp gap says nothing about the
+        motion. A few long gaps (scans dropped under load) do not stop tracking.
+        """
+        if len(self._periods_s) < 5 or self._stamp_ns is None:
+            return False
+        if (scan.stamp_ns - self._stamp_ns) * 1e-9 > max_period_s:
+            return False
+        recent = sorted(self._periods_s)
+        median = recent[len(recent) // 2]
+        return median <= max_period_s and recent[len(recent) // 10] >= 0.5 * median
+
     def _track_heading(
         self, pts: FloatArray, pred: Pose2D, scan: LaserScan
     ) -> HeadingMeasurement | None:
@@ -221,8 +236,7 @@ class ManhattanEstimator:
         p = self.params
         if p.heading_tracking_max_turn_deg <= 0.0 or not self._heading_measured:
             return None
-        period_s = self._longest_period_s(scan)
-        if period_s is None or period_s > p.heading_tracking_max_period_s:
+        if not self._fast_steady_scans(scan, p.heading_tracking_max_period_s):
             return None
         if abs(wrap_angle(pred.theta_rad - self._pose.theta_rad)) >= math.radians(
             p.heading_tracking_max_turn_deg

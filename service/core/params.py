@@ -49,7 +49,7 @@ class EstimatorParams:
     translation_window_pred_m: float = 0.4  # ± translation search around the prediction
     translation_window_odom_m: float = 0.25  # ± around an odometry prediction
     bounded_search: bool = True  # windows no wider than 2 × max speed × the scan period
-    translation_window_min_m: float = 0.1  # ... but at least this
+    translation_window_min_m: float = 0.2  # ... but at least this (0.1: 40 Hz drift, 1.9 m)
     translation_prior_sigma_m: float = 0.1  # trust in a constant-velocity prediction (0: none)
     translation_prior_sigma_odom_m: float = 0.06  # trust in an odometry prediction
     subbin_refinement: bool = True  # parabolic peak refinement (heading and translation)

@@ -175,34 +175,41 @@ def pick_peak(
     if peaks.size == 0:
         i = int(np.argmax(energy))
         peaks = np.array([i])
+    # The few peaks in plain Python from here (fewer numpy calls: speed).
+    peak_e = energy[peaks].tolist()
+    peak_s = shifts_m[peaks].tolist()
     # Rank the peaks by correlation × a Gaussian motion prior around the prediction (no prior:
     # the paper's plain argmax).
     if prior_sigma_m > 0.0:
-        rank = energy[peaks] * np.exp(-0.5 * ((shifts_m[peaks] - predicted_m) / prior_sigma_m) ** 2)
+        rank = [
+            e * math.exp(-0.5 * ((x - predicted_m) / prior_sigma_m) ** 2)
+            for e, x in zip(peak_e, peak_s, strict=True)
+        ]
     else:
-        rank = energy[peaks]
-    order = peaks[np.argsort(-rank)]
-    best = int(order[0])
-    e_max = float(energy[best])
+        rank = peak_e
+    order = sorted(range(len(rank)), key=lambda j: -rank[j])
+    best = order[0]
+    e_max = peak_e[best]
     e_min = float(energy.min())
     step = float(shifts_m[1] - shifts_m[0])
     # Strongest rival peak well separated from the best one.
-    far = order[np.abs(shifts_m[order] - shifts_m[best]) > separation_m]
-    rival = float(energy[far].max()) if far.size else e_min
+    far = [j for j in order if abs(peak_s[j] - peak_s[best]) > separation_m]
+    rival = max(peak_e[j] for j in far) if far else e_min
     contrast = (e_max - rival) / max(e_max - e_min, 1e-12) if e_max > e_min else 0.0
     ambiguous = rival >= ambiguity_ratio * e_max or e_max - e_min < 1e-9
-    chosen = best
-    if ambiguous and far.size:
-        close = order[energy[order] >= ambiguity_ratio * e_max]
-        chosen = int(close[np.argmin(np.abs(shifts_m[close] - predicted_m))])
+    chosen_peak = best
+    if ambiguous and far:
+        close = [j for j in order if peak_e[j] >= ambiguity_ratio * e_max]
+        chosen_peak = min(close, key=lambda j: abs(peak_s[j] - predicted_m))
+    chosen = int(peaks[chosen_peak])
     offset = 0.0
     if refine and 0 < chosen < n - 1:
         offset = parabolic_offset(
             float(energy[chosen - 1]), float(energy[chosen]), float(energy[chosen + 1])
         )
-    value = float(shifts_m[chosen]) + offset * step
+    value = peak_s[chosen_peak] + offset * step
     at_edge = chosen in (0, n - 1)
     if at_edge:
         ambiguous = True
-    cands = tuple(float(shifts_m[j]) for j in order[:3])
+    cands = tuple(peak_s[j] for j in order[:3])
     return AxisMatch(value, cands, min(max(contrast, 0.0), 1.0), support, ambiguous)
