@@ -42,7 +42,7 @@ def pingpong_index(k: int, n: int) -> int:
     return k if k < n else period - k
 
 
-def _path_scans(seed: int, count: int, period_s: float) -> list[LaserScan]:
+def path_scans(seed: int, count: int, period_s: float) -> list[LaserScan]:
     """`count` scans along the simulator's continuous robot motion, one every `period_s`."""
     from sensor_agent.sim import world as sim
 
@@ -67,7 +67,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     logging.basicConfig(level=logging.WARNING)
     robots = [r for r in args.robots.split(",") if r]
     period_s = 1.0 / args.rate
-    scans = _path_scans(args.seed, args.path_scans, period_s)
+    scans = path_scans(args.seed, args.path_scans, period_s)
     n_path = len(scans)
     stop = threading.Event()
 

@@ -72,9 +72,9 @@ def synthetic_scans(n: int, seed: int = 0) -> list[LaserScan]:
 
 def live_scans(n: int, seed: int = 1) -> list[LaserScan]:
     """`n` scans at 40 Hz along the simulator's continuous motion: what the load generator sends."""
-    from bench import loadgen
+    from bench.loadgen import path_scans
 
-    return loadgen._path_scans(seed, n, 1.0 / 40.0)
+    return path_scans(seed, n, 1.0 / 40.0)
 
 
 def aces_scans(n: int, use_odometry: bool) -> list[LaserScan]:
