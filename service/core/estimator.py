@@ -19,12 +19,13 @@ from __future__ import annotations
 import logging
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import numpy.typing as npt
 
 from clients.wire import PoseFlag
+from service.core.gated import SortedReference, correlate_axis_gated
 from service.core.heading import (
     QUARTER,
     HeadingMeasurement,
@@ -55,6 +56,15 @@ from service.core.types import (
 log = logging.getLogger(__name__)
 
 
+def _sides(frame: _Keyframe) -> npt.NDArray[np.bool_]:
+    """(M, 2): whether each point lies on the + side of its scan's sensor along x / y.
+
+    A wall face is seen from the sensor's side, so this tells the two faces of a thin wall
+    apart (their normals point opposite ways).
+    """
+    return np.asarray(frame.points_map_m >= np.array([frame.pose.x_m, frame.pose.y_m]))
+
+
 def _rotate(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
     c, s = math.cos(theta_rad), math.sin(theta_rad)
     out = np.empty_like(points_xy_m)
@@ -73,11 +83,14 @@ class _Keyframe:
 
 @dataclass(slots=True)
 class _Reference:
-    """What the scan is matched against: points, orientation weights, axis densities."""
+    """What the scan is matched against: points, orientation weights, sides, axis densities."""
 
     points_map_m: FloatArray
     weights: FloatArray
-    densities: tuple[AxisDensity, AxisDensity] | None = None  # built on first use
+    sides: npt.NDArray[np.bool_]  # (M, 2): on the + side of its keyframe's sensor (`_sides`)
+    # Built on first use, per axis: the 1-D densities, and sorted points for gating.
+    densities: dict[int, AxisDensity] = field(default_factory=dict)
+    sorted_by_axis: dict[int, SortedReference] = field(default_factory=dict)
 
 
 @dataclass(slots=True)
@@ -359,7 +372,6 @@ class ManhattanEstimator:
             work.theta_rad, work.rotated_m, work.weights = theta, cur, cur_w
         else:
             cur_w = np.ones_like(cur)
-        densities = self._densities(ref)
         if p.use_prediction or odom_prior:
             half_t = p.translation_window_odom_m if odom_prior else p.translation_window_pred_m
             period_s = self._longest_period_s(scan)
@@ -376,31 +388,59 @@ class ManhattanEstimator:
             prior_sigma_t = (
                 p.translation_prior_sigma_odom_m if odom_prior else p.translation_prior_sigma_m
             )
-        matches: list[AxisMatch] = []
-        for axis in (0, 1):
+        support = (float(cur_w[:, 0].sum()), float(cur_w[:, 1].sum()))
+        gated: tuple[int, ...] = ()
+        # The band needs the heading: on a fallback heading the 1-D projections are kept. On
+        # sparse scans (180-beam SICK) it measured worse: too few points pair in the band.
+        if (
+            p.translation_gate_m > 0.0
+            and heading_ok
+            and cur.shape[0] >= p.translation_gate_min_points
+        ):
+            # The axis with fewer constraining points is the along-corridor one, where a few
+            # faces decide and projection aliasing bites (`service.core.gated`).
+            gated = (0, 1) if p.translation_gate_both else (int(support[1] < support[0]),)
+        matches: dict[int, AxisMatch] = {}
+        for axis in (0, 1) if len(gated) != 1 else (1 - gated[0],):
             shifts, energy = correlate_axis(
-                densities[axis], cur[:, axis], cur_w[:, axis], centre_xy[axis], half_t
+                self._density(ref, axis), cur[:, axis], cur_w[:, axis], centre_xy[axis], half_t
             )
-            matches.append(
-                pick_peak(
-                    shifts,
-                    energy,
-                    (pred.x_m, pred.y_m)[axis],
-                    float(cur_w[:, axis].sum()),
-                    min_support=p.min_axis_support,
-                    ambiguity_ratio=p.ambiguity_ratio,
-                    refine=p.subbin_refinement,
-                    prior_sigma_m=prior_sigma_t,
-                )
+            matches[axis] = pick_peak(
+                shifts,
+                energy,
+                (pred.x_m, pred.y_m)[axis],
+                support[axis],
+                min_support=p.min_axis_support,
+                ambiguity_ratio=p.ambiguity_ratio,
+                refine=p.subbin_refinement,
+                prior_sigma_m=prior_sigma_t,
             )
-        mx, my = matches
+        # Each gated axis within a band around the other axis' 1-D answer.
+        band = {axis: matches[1 - axis].offset_m for axis in gated}
+        for axis in gated:
+            shifts, energy = self._gated_correlation(
+                ref, axis, cur, cur_w, band[axis], centre_xy[axis], half_t
+            )
+            matches[axis] = pick_peak(
+                shifts,
+                energy,
+                (pred.x_m, pred.y_m)[axis],
+                support[axis],
+                min_support=p.min_axis_support,
+                ambiguity_ratio=p.ambiguity_ratio,
+                refine=p.subbin_refinement,
+                prior_sigma_m=prior_sigma_t,
+            )
+        mx, my = matches[0], matches[1]
         x, y = mx.offset_m, my.offset_m
         if mx.ambiguous:
             flags |= PoseFlag.AMBIGUOUS_X
         if my.ambiguous:
             flags |= PoseFlag.AMBIGUOUS_Y
 
-        if p.refine_2d and self._grid_ready():
+        # A gated axis is already 2-D checked, and side-aware, which the occupied cells are
+        # not (measured on the synthetic building: the cells then undo right gated answers).
+        if p.refine_2d and (not gated or p.refine_2d_gated) and self._grid_ready():
             x, y = self._refine(cur, x, y, mx, my)
 
         q = heading_quality * (0.5 + 0.25 * mx.sharpness + 0.25 * my.sharpness)
@@ -409,6 +449,48 @@ class ManhattanEstimator:
         if my.ambiguous:
             q *= 0.7
         return self._commit(scan, Pose2D(x, y, theta), q, flags, pts, work=work)
+
+    def _gated_correlation(  # noqa: PLR0917 - the correlation's inputs plus the band
+        self,
+        ref: _Reference,
+        axis: int,
+        cur: FloatArray,
+        cur_w: FloatArray,
+        other_m: float,
+        centre_m: float,
+        half_t: float,
+    ) -> tuple[FloatArray, FloatArray]:
+        """One axis' correlation, pairs only within a band of `other_m` on the other axis."""
+        p = self.params
+        other = 1 - axis
+        sides = p.translation_gate_sides
+        sorted_ref = ref.sorted_by_axis.get(axis)
+        if sorted_ref is None:  # once per reference, like the densities
+            sorted_ref = SortedReference(
+                ref.points_map_m,
+                ref.weights,
+                ref.sides if sides else None,
+                axis,
+                p.translation_gate_min_weight,
+            )
+            ref.sorted_by_axis[axis] = sorted_ref
+        # A heading error moves far points across the band: widen it with the range.
+        gate = p.translation_gate_m + np.hypot(cur[:, 0], cur[:, 1]) * math.tan(
+            math.radians(p.translation_gate_heading_deg)
+        )
+        return correlate_axis_gated(
+            sorted_ref,
+            cur[:, axis],
+            cur[:, other] + other_m,
+            cur_w[:, axis],
+            cur[:, axis] >= 0.0 if sides else None,
+            centre_m,
+            half_t,
+            p.translation_step_m,
+            p.translation_bin_m,
+            gate,
+            p.translation_gate_min_weight,
+        )
 
     # ------------------------------------------------------------------ heading check
     def _check_heading(
@@ -506,6 +588,7 @@ class ManhattanEstimator:
             return None
         pts = np.concatenate([f.points_map_m for f in frames])
         w = np.concatenate([f.weights for f in frames])
+        sides = np.concatenate([_sides(f) for f in frames])
         if len(frames) > 1:
             # The local map within the radius of its newest keyframe (not of the prediction,
             # so that the reference stays the same from one keyframe to the next).
@@ -515,29 +598,29 @@ class ManhattanEstimator:
             keep = np.flatnonzero(d2 <= p.local_map_radius_m**2)
             if p.min_points <= keep.shape[0] < pts.shape[0]:
                 pts, w = pts.take(keep, axis=0), w.take(keep, axis=0)
+                sides = sides.take(keep, axis=0)
         if not p.orientation_weighting:
             w = np.ones_like(pts)
-        self._ref = _Reference(pts, w)
+        self._ref = _Reference(pts, w, sides)
         return self._ref
 
-    def _densities(self, ref: _Reference) -> tuple[AxisDensity, AxisDensity]:
-        if ref.densities is None:
+    def _density(self, ref: _Reference, axis: int) -> AxisDensity:
+        """The reference's density along `axis`, built on first use (a gated axis needs none)."""
+        density = ref.densities.get(axis)
+        if density is None:
             p = self.params
             widest = max(
                 p.translation_window_m, p.translation_window_pred_m, p.translation_window_odom_m
             )
-            dx, dy = (
-                axis_density(
-                    np.ascontiguousarray(ref.points_map_m[:, axis]),
-                    np.ascontiguousarray(ref.weights[:, axis]),
-                    p.translation_step_m,
-                    p.translation_bin_m,
-                    widest,
-                )
-                for axis in (0, 1)
+            density = axis_density(
+                np.ascontiguousarray(ref.points_map_m[:, axis]),
+                np.ascontiguousarray(ref.weights[:, axis]),
+                p.translation_step_m,
+                p.translation_bin_m,
+                widest,
             )
-            ref.densities = (dx, dy)
-        return ref.densities
+            ref.densities[axis] = density
+        return density
 
     def _grid_ready(self) -> bool:
         if not self._keyframes:

@@ -64,7 +64,14 @@ class EstimatorParams:
     direction_window_deg: float = 20.0  # ± search of that rotation around the prediction
     direction_sigma_deg: float = 2.0  # trust in it as the Manhattan heading's prior
     direction_min_contrast: float = 0.1
+    translation_gate_m: float = 0.15  # > 0: correlate only pairs this close on the other axis
+    translation_gate_min_points: int = 250  # thinned scan points needed to gate
+    translation_gate_heading_deg: float = 0.5  # band widened by range × tan(this)
+    translation_gate_min_weight: float = 0.05  # points voting less on an axis are skipped
+    translation_gate_sides: bool = True  # pair only faces seen from the same side
+    translation_gate_both: bool = False  # gate both axes (default: the less supported one)
     refine_2d: bool = True  # joint 2-D check of the 1-D peak candidates
+    refine_2d_gated: bool = False  # run it also after a gated correlation
     heading_check: bool = True  # re-anchor the heading quadrant on the local map's geometry
     heading_check_min_turn_deg: float = 4.0  # run it when turning faster than this per scan
     heading_check_max_turn_deg: float = 20.0  # candidates within this of the prediction

@@ -5,9 +5,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import numpy.typing as npt
 import pytest
 
 from service.core import refine
+from service.core.gated import SortedReference, correlate_axis_gated
 from service.core.heading import _median, heading_scores
 from service.core.refine import OccupiedCells
 from service.core.translation import axis_density, correlate_axis
@@ -93,3 +95,54 @@ def test_median_is_numpy_median() -> None:
     for n in (1, 2, 3, 89, 90, 91):
         v = rng.normal(size=n)
         assert _median(v) == float(np.median(v))
+
+
+def _naive_gated(  # noqa: PLR0917 - the definition, input by input
+    ref_pts: FloatArray,
+    ref_w: FloatArray,
+    ref_sides: npt.NDArray[np.bool_],
+    cur_along: FloatArray,
+    cur_other: FloatArray,
+    cur_w: FloatArray,
+    cur_sides: npt.NDArray[np.bool_],
+    shifts: FloatArray,
+    gate: FloatArray,
+) -> FloatArray:
+    """Every (current, reference) pair within the band and on the same side, by definition."""
+    axis, step, half, min_w = 0, 0.005, 6, 0.05
+    rk = ref_w[:, axis] > min_w
+    ra, ro, rw, rs = ref_pts[rk, axis], ref_pts[rk, 1], ref_w[rk, axis], ref_sides[rk, axis]
+    n_ext = shifts.shape[0] + 2 * half
+    hist = np.zeros(n_ext + 1)
+    for i in np.flatnonzero(cur_w > min_w):
+        pair = (np.abs(ro - cur_other[i]) <= gate[i]) & (rs == cur_sides[i])
+        pos = (ra[pair] - cur_along[i] - shifts[0]) / step + half
+        w = cur_w[i] * rw[pair]
+        ok = (pos >= 0.0) & (pos < n_ext - 1)
+        i0 = np.floor(pos[ok]).astype(np.int64)
+        np.add.at(hist, i0, w[ok] * (1.0 - (pos[ok] - i0)))
+        np.add.at(hist, i0 + 1, w[ok] * (pos[ok] - i0))
+    tri = 1.0 - np.abs(np.arange(-half, half + 1)) / (half + 1)
+    return np.convolve(hist[:n_ext], tri, mode="valid")
+
+
+def test_gated_correlation_matches_all_pairs_in_the_band() -> None:
+    rng = np.random.default_rng(9)
+    for _ in range(20):
+        n_ref, n_cur = int(rng.integers(10, 1500)), int(rng.integers(5, 300))
+        ref_pts = rng.uniform(-15.0, 15.0, (n_ref, 2))
+        ref_w = rng.random((n_ref, 2))
+        ref_sides = rng.random((n_ref, 2)) < 0.5
+        cur = rng.uniform(-15.0, 15.0, (n_cur, 2))
+        cur_w = rng.random(n_cur)
+        cur_sides = rng.random(n_cur) < 0.5
+        gate = rng.uniform(0.15, 0.45, n_cur)
+        centre = float(rng.uniform(-0.5, 0.5))
+        sorted_ref = SortedReference(ref_pts, ref_w, ref_sides, 0, 0.05)
+        shifts, energy = correlate_axis_gated(
+            sorted_ref, cur[:, 0], cur[:, 1], cur_w, cur_sides, centre, 0.4, 0.005, 0.03, gate, 0.05
+        )
+        want = _naive_gated(
+            ref_pts, ref_w, ref_sides, cur[:, 0], cur[:, 1], cur_w, cur_sides, shifts, gate
+        )
+        np.testing.assert_allclose(energy, want, rtol=1e-9, atol=1e-9)

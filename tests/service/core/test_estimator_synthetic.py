@@ -60,7 +60,6 @@ def _run(seed: int) -> tuple[float, float]:
 def test_synthetic_loop_heading_and_gap(seed: int) -> None:
     worst_heading_deg, gap_m = _run(seed)
     assert worst_heading_deg < 0.5
-    assert gap_m < 1.0  # regression guard: no lost track
-    if gap_m >= 0.25:
-        # Known gap (docs/estimator.md): along-corridor drift, not yet at the paper's 0.25 m.
-        pytest.xfail(f"loop-closure gap {gap_m:.2f} m >= 0.25 m target")
+    # The paper's 0.24 m / 0.22 m loop gap (measured 0.003-0.007 m with the gated along-axis
+    # correlation; 0.17-0.58 m before it, docs/estimator.md).
+    assert gap_m < 0.25
