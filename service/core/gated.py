@@ -24,6 +24,8 @@ import numpy.typing as npt
 from service.core.types import FloatArray
 
 _SIDE_OFFSET_M = 1.0e6  # far beyond any band: the two sides never pair
+_BUCKET_M = 0.5  # bucket of the other coordinate (a band is 0.15-0.4 m each side)
+_MARGIN_M = 1e-3  # the 2-D query reads a little more; the exact window filter follows
 
 
 def _side_offset(sides: npt.NDArray[np.bool_]) -> FloatArray:
@@ -31,7 +33,12 @@ def _side_offset(sides: npt.NDArray[np.bool_]) -> FloatArray:
 
 
 class SortedReference:
-    """Reference points sorted by one coordinate, for band queries along the other."""
+    """Reference points bucketed by the other coordinate, sorted along the axis within a bucket.
+
+    A band query then reads, per bucket the band touches, only the points whose along-axis
+    coordinate can fall inside the correlation window (a 2-D range query with two
+    `searchsorted`), instead of every point in the band.
+    """
 
     def __init__(
         self,
@@ -47,9 +54,16 @@ class SortedReference:
         key = pts[:, other]
         if sides is not None:
             key = key + _side_offset(sides.take(keep, axis=0)[:, axis])
-        order = np.argsort(key, kind="stable")
+        along = pts[:, axis]
+        self.along_origin_m = float(along.min()) - 1.0 if along.size else 0.0
+        # Bucket b's points sit in [b·span, (b + 1)·span) of the combined key.
+        self.span_m = (float(along.max()) - self.along_origin_m + 1.0) * 2.0 if along.size else 1.0
+        bucket = np.floor(key / _BUCKET_M)
+        combined = bucket * self.span_m + (along - self.along_origin_m)
+        order = np.argsort(combined, kind="stable")
+        self.combined = np.ascontiguousarray(combined[order])
         self.other_m = np.ascontiguousarray(key[order])
-        self.along_m = np.ascontiguousarray(pts[order, axis])
+        self.along_m = np.ascontiguousarray(along[order])
         self.weights = np.ascontiguousarray(weights.take(keep, axis=0)[order, axis])
 
 
@@ -80,26 +94,36 @@ def correlate_axis_gated(  # noqa: PLR0917 - mirrors correlate_axis plus the ban
     if sel.size == 0 or ref.other_m.size == 0:
         return shifts, energy
     co = cur_other_m.take(sel)
-    gate = gate_m.take(sel) if isinstance(gate_m, np.ndarray) else gate_m
+    gate = gate_m.take(sel) if isinstance(gate_m, np.ndarray) else np.full(sel.size, gate_m)
     if cur_sides is not None:
         co = co + _side_offset(cur_sides.take(sel))
     ca = cur_along_m.take(sel)
     cw = cur_weights.take(sel)
-    lo = np.searchsorted(ref.other_m, co - gate, side="left")
-    hi = np.searchsorted(ref.other_m, co + gate, side="right")
+    half = max(1, round(bin_m / step_m))
+    n_ext = k + 2 * half
+    d_lo = float(shifts[0]) - half * step_m - _MARGIN_M
+    d_hi = float(shifts[0]) + (n_ext - 1 - half) * step_m + _MARGIN_M
+    b_lo = np.floor((co - gate) / _BUCKET_M)
+    n_b = (np.floor((co + gate) / _BUCKET_M) - b_lo).astype(np.intp) + 1
+    qi = np.repeat(np.arange(sel.size), n_b)
+    qb = np.repeat(b_lo, n_b) + (np.arange(qi.size) - np.repeat(np.cumsum(n_b) - n_b, n_b))
+    base = qb * ref.span_m
+    rel = ca.take(qi) - ref.along_origin_m
+    lo = np.searchsorted(ref.combined, base + np.clip(rel + d_lo, 0.0, ref.span_m), side="left")
+    hi = np.searchsorted(ref.combined, base + np.clip(rel + d_hi, 0.0, ref.span_m), side="right")
     cnt = hi - lo
     total = int(cnt.sum())
     if total == 0:
         return shifts, energy
-    ci = np.repeat(np.arange(sel.size), cnt)
+    ci = np.repeat(qi, cnt)
     starts = np.cumsum(cnt) - cnt
     rj = np.repeat(lo - starts, cnt) + np.arange(total)
+    in_band = np.abs(ref.other_m.take(rj) - co.take(ci)) <= gate.take(ci)
+    ci, rj = ci[in_band], rj[in_band]
     # The shift that puts current point i onto reference point j.
     d = ref.along_m.take(rj) - ca.take(ci)
     w = cw.take(ci) * ref.weights.take(rj)
-    half = max(1, round(bin_m / step_m))
     pos = (d - float(shifts[0])) / step_m + half
-    n_ext = k + 2 * half
     ok = (pos >= 0.0) & (pos < n_ext - 1)
     pos, w = pos[ok], w[ok]
     if pos.size == 0:
