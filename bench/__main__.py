@@ -159,7 +159,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         res["speed"] = _timed(
             "speed",
-            lambda: run_speed(make_synthetic_run(args.seed, max_scans=sizes.speed_scans)),
+            lambda: run_speed(
+                make_synthetic_run(args.seed, max_scans=sizes.speed_scans),
+                live_scans=sizes.speed_scans or 800,
+            ),
         )
     if "growth" in sections:
         from bench.growth import run_growth
