@@ -40,13 +40,14 @@ class Sizes:
     growth_laps_between: int
     scale_robots: tuple[int, ...]
     scale_loads: tuple[str, ...]
+    scale_in_process: tuple[int, ...]  # N measured again with the estimators in the service
     scale_warmup_s: float
     scale_measure_s: float
     scale_drain_s: float
 
 
-FULL = Sizes(None, "paper", 3, (1, 5, 10, 25), ("agents", "loadgen"), 5.0, 20.0, 2.0)
-QUICK = Sizes(300, "small", 2, (1, 5), ("agents", "loadgen"), 1.0, 4.0, 1.0)
+FULL = Sizes(None, "paper", 3, (1, 5, 10, 25), ("agents", "loadgen"), (10,), 5.0, 20.0, 2.0)
+QUICK = Sizes(300, "small", 2, (1, 5), ("agents", "loadgen"), (5,), 1.0, 4.0, 1.0)
 
 
 def _drop_openblas_overrides() -> None:
@@ -185,6 +186,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             lambda: run_scale(
                 sizes.scale_robots,
                 sizes.scale_loads,
+                mapper_processes=os.cpu_count() or 1,
+                in_process_counts=sizes.scale_in_process,
                 warmup_s=sizes.scale_warmup_s,
                 measure_s=sizes.scale_measure_s,
                 drain_s=sizes.scale_drain_s,

@@ -87,7 +87,8 @@ def pyspy_available() -> str | None:
 
 
 def pyspy_profile(pid: int, duration_s: float, what: str, top: int = 12) -> Profile | None:
-    """Sample a running process with py-spy (100 Hz, active threads only); None if it fails."""
+    """Sample a running process and its children with py-spy (100 Hz, active threads only);
+    None if it fails."""
     exe = pyspy_available()
     if exe is None:
         log.warning("py-spy is not installed; no profile of the service")
@@ -95,7 +96,7 @@ def pyspy_profile(pid: int, duration_s: float, what: str, top: int = 12) -> Prof
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "stacks.txt"
         cmd = [exe, "record", "-p", str(pid), "-d", str(max(1, round(duration_s)))]
-        cmd += ["-r", "100", "-f", "raw", "-o", str(out)]
+        cmd += ["-r", "100", "-f", "raw", "-o", str(out), "--subprocesses"]
         try:
             subprocess.run(cmd, capture_output=True, text=True, check=True, timeout=duration_s + 60)
         except (OSError, subprocess.SubprocessError) as err:

@@ -53,7 +53,9 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def service_command(http_port: int, data_dir: Path, zenoh_endpoint: str) -> list[str]:
+def service_command(
+    http_port: int, data_dir: Path, zenoh_endpoint: str, mapper_processes: int
+) -> list[str]:
     return [
         str(BIN / "mapping-service"),
         "serve",
@@ -63,6 +65,8 @@ def service_command(http_port: int, data_dir: Path, zenoh_endpoint: str) -> list
         str(data_dir),
         "--zenoh-listen",
         zenoh_endpoint,
+        "--mapper-processes",
+        str(mapper_processes),
     ]
 
 
@@ -70,6 +74,7 @@ def service_command(http_port: int, data_dir: Path, zenoh_endpoint: str) -> list
 class ScaleConfig:
     robots: int
     load: str  # "agents" (N sensor-agent processes) or "loadgen" (one process)
+    mapper_processes: int  # the service's `--mapper-processes` (0: estimators in its process)
     warmup_s: float
     measure_s: float
     drain_s: float = 2.0  # after the load stops and the queues are empty
@@ -300,7 +305,8 @@ def _rss_sampler(proc: psutil.Process, period_s: float = 0.5) -> Iterator[list[i
     def run() -> None:
         while not stop.is_set():
             with contextlib.suppress(psutil.Error):
-                samples.append(proc.memory_info().rss)
+                tree = [proc, *proc.children(recursive=True)]  # with its mapper processes
+                samples.append(sum(p.memory_info().rss for p in tree))
             stop.wait(period_s)
 
     t = threading.Thread(target=run, daemon=True)
@@ -322,13 +328,18 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
     robots = [f"bench-r{i:02d}" for i in range(cfg.robots)]
     procs = Procs()
     data_dir = Path(tempfile.mkdtemp(prefix="bench-service-", dir=work_dir))
-    rec_path = work_dir / f"{cfg.load}-{cfg.robots}-rec.npz"
-    loadgen_out = work_dir / f"{cfg.load}-{cfg.robots}-loadgen.json"
-    result: dict[str, Any] = {"robots": cfg.robots, "load": cfg.load}
+    name = f"{cfg.load}-{cfg.robots}-k{cfg.mapper_processes}"
+    rec_path = work_dir / f"{name}-rec.npz"
+    loadgen_out = work_dir / f"{name}-loadgen.json"
+    result: dict[str, Any] = {
+        "robots": cfg.robots,
+        "load": cfg.load,
+        "mapper_processes": cfg.mapper_processes,
+    }
     try:
         service = procs.start(
             "service",
-            service_command(http_port, data_dir, service_ep),
+            service_command(http_port, data_dir, service_ep, cfg.mapper_processes),
             work_dir,
             stdout=subprocess.DEVNULL,
         )
@@ -455,7 +466,8 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
                 profile = pyspy_profile(
                     service.pid,
                     min(cfg.profile_s, cfg.measure_s),
-                    f"the service process under {cfg.robots} robots ({cfg.load})",
+                    f"the service process under {cfg.robots} robots "
+                    f"({config_label(cfg.load, cfg.mapper_processes)})",
                 )
             time.sleep(max(0.0, cfg.measure_s - (time.monotonic() - w0)))
         t1_ns = time.time_ns()
@@ -518,22 +530,29 @@ def meets_target(p: dict[str, Any]) -> bool:
     )
 
 
+def config_label(load: str, mapper_processes: int) -> str:
+    """How the report names one (load, service configuration) pair."""
+    who = "emulated agents" if load == "agents" else "one-process load generator"
+    if mapper_processes:
+        return f"{who}; service with {mapper_processes} mapper processes"
+    return f"{who}; estimators in the service's process"
+
+
 def scale_targets(points: Sequence[dict[str, Any]]) -> list[Target]:
-    """The issue's target, judged on each load kind separately at N ≥ 10 robots."""
+    """The issue's target, judged on each load and service configuration at N ≥ 10 robots."""
     targets: list[Target] = []
-    for load in ("agents", "loadgen"):
-        mine = [p for p in points if p["load"] == load]
+    configs = sorted({(p["load"], p["mapper_processes"]) for p in points}, key=_config_order)
+    for load, k in configs:
+        mine = [p for p in points if (p["load"], p["mapper_processes"]) == (load, k)]
         big = [p for p in mine if p["robots"] >= TARGET_ROBOTS]
-        label = "emulated agents" if load == "agents" else "one-process load generator"
+        label = config_label(load, k)
         name = f"≥ {TARGET_ROBOTS} robots × 40 Hz, zero drops, p99 ≤ {TARGET_P99_MS:g} ms ({label})"
         target = f"{TARGET_ROBOTS} robots: 0 dropped, p99 ≤ {TARGET_P99_MS:g} ms"
         passing = [p["robots"] for p in mine if meets_target(p)]
         best = f"; met up to N={max(passing)}" if passing else "; met at no N measured"
         if not big:
-            if mine:
-                targets.append(
-                    Target(name, target, f"not run (N ≤ {max_n(points, load)}){best}", None)
-                )
+            n_max = max(p["robots"] for p in mine)
+            targets.append(Target(name, target, f"not run (N ≤ {n_max}){best}", None))
             continue
         p = min(big, key=lambda q: q["robots"])
         if "error" in p:
@@ -548,36 +567,44 @@ def scale_targets(points: Sequence[dict[str, Any]]) -> list[Target]:
     return targets
 
 
-def max_n(points: Sequence[dict[str, Any]], load: str) -> int:
-    return max((p["robots"] for p in points if p["load"] == load), default=0)
+def _config_order(config: tuple[str, int]) -> tuple[int, int]:
+    load, k = config
+    return (0 if load == "agents" else 1, -k)
 
 
 def run_scale(
     robot_counts: Sequence[int],
     loads: Sequence[str],
     *,
+    mapper_processes: int,
+    in_process_counts: Sequence[int],
     warmup_s: float,
     measure_s: float,
     work_dir: Path,
     drain_s: float = 2.0,
     profile_on_miss: bool = True,
 ) -> dict[str, Any]:
+    """Every load at every N with `mapper_processes`, then the load generator at
+    `in_process_counts` with the estimators in the service's process, for comparison."""
+    configs = [(load, n, mapper_processes) for load in loads for n in robot_counts]
+    if mapper_processes:
+        configs += [("loadgen", n, 0) for n in in_process_counts]
     points: list[dict[str, Any]] = []
-    for load in loads:
-        for n in robot_counts:
-            cfg = ScaleConfig(n, load, warmup_s, measure_s, drain_s)
-            log.info("scale: %d robots, %s, %.0f s window", n, load, measure_s)
-            try:
-                points.append(run_point(cfg, work_dir / f"{load}-{n}"))
-            except BenchError as err:
-                log.error("scale run %d robots (%s) failed: %s", n, load, err)
-                points.append({"robots": n, "load": load, "error": str(err)})
+    for load, n, k in configs:
+        cfg = ScaleConfig(n, load, k, warmup_s, measure_s, drain_s)
+        log.info("scale: %d robots, %s, %d mapper processes, %.0f s window", n, load, k, measure_s)
+        try:
+            points.append(run_point(cfg, work_dir / f"{load}-{n}-k{k}"))
+        except BenchError as err:
+            log.error("scale run %d robots (%s, k=%d) failed: %s", n, load, k, err)
+            points.append({"robots": n, "load": load, "mapper_processes": k, "error": str(err)})
     targets = scale_targets(points)
     result: dict[str, Any] = {
         "rate_hz": RATE_HZ,
         "warmup_s": warmup_s,
         "measure_s": measure_s,
         "drain_s": drain_s,
+        "mapper_processes": mapper_processes,
         "points": points,
         "targets": [t.as_dict() for t in targets],
     }
@@ -588,11 +615,12 @@ def run_scale(
     ]
     if profile_on_miss and missed:
         # Profile the service in a run of its own (py-spy slows the process it samples), with
-        # the lighter load, at the smallest N that missed.
-        n = min(p["robots"] for p in missed)
-        cfg = ScaleConfig(n, "loadgen", warmup_s, max(measure_s, 10.0), drain_s, profile_s=10.0)
+        # the lighter load, at the smallest N that missed, in the configuration that missed.
+        worst = min(missed, key=lambda p: (p["robots"], -p["mapper_processes"]))
+        n, k = worst["robots"], worst["mapper_processes"]
+        cfg = ScaleConfig(n, "loadgen", k, warmup_s, max(measure_s, 10.0), drain_s, profile_s=10.0)
         try:
-            prof_run = run_point(cfg, work_dir / f"profile-{n}")
+            prof_run = run_point(cfg, work_dir / f"profile-{n}-k{k}")
             result["profile"] = prof_run.get("profile")
         except BenchError as err:
             log.error("profiling run failed: %s", err)

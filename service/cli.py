@@ -88,6 +88,14 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="allow a non-loopback HTTP bind without a token",
     )
+    p_serve.add_argument(
+        "--mapper-processes",
+        type=int,
+        default=None,
+        metavar="K",
+        help="run the estimators in K worker processes, to use K cores with many robots "
+        "(or env MAPPING_MAPPER_PROCESSES; default: 0, in the service's process)",
+    )
     _add_zenoh_args(p_serve)
     p_serve.set_defaults(handler="service.app.main:run_serve")
 

@@ -171,11 +171,11 @@ class Ingest:
 
     def _start_workers(self) -> None:
         """Start the worker pool (once, with the first robot; `_queues_lock` held)."""
-        for index in range(self._settings.workers):
+        for index in range(self._settings.worker_threads):
             thread = threading.Thread(target=self._run, name=f"ingest-{index}", daemon=True)
             self._workers.append(thread)
             thread.start()
-        log.info("ingest: %d worker thread(s) started", self._settings.workers)
+        log.info("ingest: %d worker thread(s) started", self._settings.worker_threads)
 
     # -- worker side ---------------------------------------------------------------------------
 

@@ -22,8 +22,9 @@ from service.app import render
 from service.app.errors import TransportError
 from service.app.fanout import PoseFanout
 from service.app.ingest import Ingest
+from service.app.mapper import Engine, MapperPool
 from service.app.metrics import Labels, Metrics, labels
-from service.app.sessions import Engine, SessionManager
+from service.app.sessions import SessionManager
 from service.app.settings import ServiceSettings
 from service.app.store import DataDir, MapStore
 
@@ -42,11 +43,14 @@ class MappingRuntime:
         self.metrics = Metrics()
         self.data = DataDir(settings.storage.data_dir)
         self.maps = MapStore(self.data.maps_dir)
+        processes = settings.ingest.mapper_processes
+        self.mapper_pool = MapperPool(processes, engine or Engine()) if processes else None
         self.sessions = SessionManager(
             self.data,
             self.maps,
             fsync_each=settings.storage.fsync_interval_s == 0,
             engine=engine,
+            make_mapper=self.mapper_pool.new_mapper if self.mapper_pool is not None else None,
             render_map_files=render.map_files,
         )
         prefix = settings.zenoh.prefix
@@ -64,6 +68,13 @@ class MappingRuntime:
         self.fsync_errors = 0
         self.started_ns = 0
         self.metrics.gauge("mapping_sessions", "Sessions by state.", self._session_gauge)
+        if self.mapper_pool is not None:
+            pool = self.mapper_pool
+            self.metrics.gauge(
+                "mapping_mapper_restarts",
+                "Mapper processes started again after they died.",
+                lambda: [(labels(), float(pool.restarts))],
+            )
         self.metrics.gauge(
             "mapping_robots_alive",
             "Robots whose agent liveliness token is present.",
@@ -76,6 +87,8 @@ class MappingRuntime:
         try:
             self.data.open()
             self.maps.load()
+            if self.mapper_pool is not None:
+                self.mapper_pool.start()
             t0 = time.monotonic()
             self.sessions.load_all()
             log.info(
@@ -153,6 +166,8 @@ class MappingRuntime:
             self._syncer = None
         self.sessions.sync_all()
         self.sessions.close()
+        if self.mapper_pool is not None:
+            self.mapper_pool.close()
         self.fanout.close()
         if self.zenoh is not None:
             close: Any = self.zenoh.close  # untyped in zenoh's stubs

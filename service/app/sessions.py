@@ -15,7 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Final, NamedTuple, Protocol
+from typing import Any, Final, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
@@ -31,6 +31,15 @@ from clients.wire import (
     encode_pose,
 )
 from service.app.errors import ConflictError, NotFoundError, StoreError
+from service.app.mapper import (
+    Engine,
+    MappedScan,
+    Mapper,
+    MapperError,
+    MapperFactory,
+    MapperLostError,
+    local_mapper_factory,
+)
 from service.app.store import (
     DataDir,
     MapStore,
@@ -42,52 +51,8 @@ from service.app.store import (
     new_session_id,
     write_atomic,
 )
-from service.core.types import LaserScan, Pose2D, PoseEstimate
 
 log = logging.getLogger(__name__)
-
-
-class Estimator(Protocol):
-    def process(self, scan: LaserScan) -> PoseEstimate: ...
-    def reset(self) -> None: ...
-
-
-class Grid(Protocol):
-    def integrate(self, scan: LaserScan, pose: Pose2D) -> None: ...
-    def snapshot(self) -> Any: ...
-
-
-EstimatorFactory = Callable[[bool], Estimator]  # use_odometry -> estimator
-GridFactory = Callable[[float], Grid]  # resolution_m -> grid
-ScanConverter = Callable[[Scan, bool], LaserScan]  # (scan, use_odometry) -> LaserScan
-
-
-def default_estimator_factory(use_odometry: bool) -> Estimator:
-    from service.core.estimator import ManhattanEstimator  # noqa: PLC0415
-    from service.core.params import EstimatorParams  # noqa: PLC0415
-
-    return ManhattanEstimator(EstimatorParams(use_odometry=use_odometry))
-
-
-def default_grid_factory(resolution_m: float) -> Grid:
-    from service.core.grid import OccupancyGrid  # noqa: PLC0415
-
-    return OccupancyGrid(resolution_m=resolution_m)
-
-
-def default_scan_converter(scan: Scan, use_odometry: bool) -> LaserScan:
-    from service.bridge import scan_to_laser  # noqa: PLC0415
-
-    return scan_to_laser(scan, use_odometry=use_odometry)
-
-
-@dataclass(frozen=True, slots=True)
-class Engine:
-    """How sessions turn scans into poses and maps (swappable in tests)."""
-
-    make_estimator: EstimatorFactory = default_estimator_factory
-    make_grid: GridFactory = default_grid_factory
-    to_laser: ScanConverter = default_scan_converter
 
 
 @dataclass(frozen=True, slots=True)
@@ -125,8 +90,7 @@ class _Checkpoint:
     records: int
     scans_accepted: int
     map_revision: int
-    estimator: Estimator
-    grid: Grid
+    mapper_state: bytes  # `Mapper.state()`: estimator and grid
 
 
 CHECKPOINT_FILE = "checkpoint.pickle"
@@ -148,7 +112,7 @@ class MappingSession:
     # bounds that replay to about a minute of estimator time.
     checkpoint_every_scans = 2400
 
-    def __init__(self, store: SessionStore, engine: Engine) -> None:
+    def __init__(self, store: SessionStore, make_mapper: MapperFactory) -> None:
         meta = store.meta
         self.id = meta.id
         self.robot_id = meta.robot_id
@@ -157,9 +121,8 @@ class MappingSession:
         self.use_odometry = meta.use_odometry
         self.lock = threading.Lock()
         self._store = store
-        self._engine = engine
-        self._estimator = engine.make_estimator(meta.use_odometry)
-        self._grid = engine.make_grid(meta.resolution_m)
+        self._make_mapper = make_mapper
+        self._mapper: Mapper = make_mapper(meta.id, meta.use_odometry, meta.resolution_m)
         self._poses: list[Pose] = []
         self._deleted = False
         self.scans_accepted = 0
@@ -206,11 +169,7 @@ class MappingSession:
     def _estimate(self, scan: Scan) -> Pose | None:
         """Run estimator and grid on `scan` (lock held). None if the estimator failed."""
         try:
-            laser = self._engine.to_laser(scan, self.use_odometry)
-            estimate = self._estimator.process(laser)
-            if estimate.is_keyframe:
-                self._grid.integrate(laser, estimate.pose)
-                self.map_revision += 1
+            mapped = self._map(scan)
         except Exception:
             # The estimator promises not to raise on bad data; if it does anyway, the scan stays
             # recorded (a replay meets the same failure) and the session carries on.
@@ -223,36 +182,73 @@ class MappingSession:
                     self.estimator_errors,
                 )
             return None
+        if mapped.is_keyframe:
+            self.map_revision += 1
         return Pose(
             session_id=self.id,
             robot_id=self.robot_id,
             seq=len(self._poses),
             stamp_ns=scan.stamp_ns,
-            x_m=estimate.pose.x_m,
-            y_m=estimate.pose.y_m,
-            theta_rad=estimate.pose.theta_rad,
-            quality=min(max(float(estimate.quality), 0.0), 1.0),
-            flags=PoseFlag(int(estimate.flags)),
+            x_m=mapped.x_m,
+            y_m=mapped.y_m,
+            theta_rad=mapped.theta_rad,
+            quality=min(max(mapped.quality, 0.0), 1.0),
+            flags=PoseFlag(mapped.flags),
         )
+
+    def _map(self, scan: Scan) -> MappedScan:
+        """The mapper's answer; a lost mapper (its process died) is rebuilt first (lock held)."""
+        try:
+            return self._mapper.map_scan(scan)
+        except MapperLostError as err:
+            log.error("session %s: %s; rebuilding its map from the recording", self.id, err)
+            self._rebuild_mapper()
+            return self._mapper.map_scan(scan)
+
+    def _rebuild_mapper(self) -> None:
+        """A new mapper with the state of every record before the current one (lock held):
+        the checkpoint's, then the recorded scans after it, as a restart would."""
+        self._mapper.close()
+        self._mapper = self._make_mapper(self.id, self.use_odometry, self.resolution_m)
+        upto = self._records - 1  # the current scan is recorded already; the caller maps it
+        checkpoint = self._load_checkpoint()
+        skip = 0
+        if checkpoint is not None and checkpoint.records <= upto:
+            self._mapper.restore(checkpoint.mapper_state)
+            skip = checkpoint.records
+        replayed = 0
+        for index, record in enumerate(self._store.records()):
+            if index >= upto:
+                break
+            if index < skip or record.kind != "scan":
+                continue
+            try:
+                self._mapper.map_scan(
+                    decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
+                )
+            except DecodeError:
+                continue
+            replayed += 1
+        self.map_revision += 1
+        log.info("session %s: map rebuilt (%d scans re-estimated)", self.id, replayed)
 
     # -- recovery -------------------------------------------------------------------------
 
     def _write_checkpoint(self) -> None:
         """Persist estimator and grid (lock held); the recording is fsynced first so that a
         checkpoint never refers to records a power loss could take back."""
-        checkpoint = _Checkpoint(
-            epoch=self._store.meta.epoch,
-            records=self._records,
-            scans_accepted=self.scans_accepted,
-            map_revision=self.map_revision,
-            estimator=self._estimator,
-            grid=self._grid,
-        )
         try:
+            checkpoint = _Checkpoint(
+                epoch=self._store.meta.epoch,
+                records=self._records,
+                scans_accepted=self.scans_accepted,
+                map_revision=self.map_revision,
+                mapper_state=self._mapper.state(),
+            )
             self._store.sync()
             data = pickle.dumps(checkpoint, protocol=pickle.HIGHEST_PROTOCOL)
             write_atomic(self._store.directory / CHECKPOINT_FILE, data)
-        except (OSError, pickle.PicklingError, TypeError) as err:
+        except (OSError, MapperError, pickle.PicklingError, TypeError) as err:
             log.warning("session %s: checkpoint not written: %s", self.id, err)
         self._checkpoint_scans = self.scans_accepted
 
@@ -287,8 +283,7 @@ class MappingSession:
             checkpoint = self._load_checkpoint()
             skip = 0
             if checkpoint is not None:
-                self._estimator = checkpoint.estimator
-                self._grid = checkpoint.grid
+                self._mapper.restore(checkpoint.mapper_state)
                 self.map_revision = checkpoint.map_revision
                 skip = checkpoint.records
             for index, record in enumerate(self._store.records()):
@@ -361,8 +356,7 @@ class MappingSession:
             self._store.new_epoch()
             if self.state != "active":
                 self._store.close_writer()
-            self._estimator.reset()
-            self._grid = self._engine.make_grid(self.resolution_m)
+            self._mapper.reset()
             self._poses = []
             self.scans_accepted = 0
             self.map_revision += 1
@@ -373,6 +367,7 @@ class MappingSession:
     def delete(self, trash_dir: Any) -> None:
         with self.lock:
             self._deleted = True
+            self._mapper.close()
             self._store.delete(trash_dir)
 
     def sync(self) -> None:
@@ -383,6 +378,7 @@ class MappingSession:
             if self.state == "active" and not self._deleted:
                 self._checkpoint_if_behind()
             self._store.close_writer()
+            self._mapper.close()
 
     def _checkpoint_if_behind(self) -> None:
         """A checkpoint at a clean stop or shutdown makes the next start instant (lock held)."""
@@ -418,7 +414,7 @@ class MappingSession:
         """The grid snapshot, cached per map revision (lock held): the live page polls the
         map several times a second while it only changes at keyframes."""
         if self._image_cache is None or self._image_cache[1] != self.map_revision:
-            self._image_cache = (self._grid.snapshot(), self.map_revision)
+            self._image_cache = (self._mapper.snapshot(), self.map_revision)
         return self._image_cache[0]
 
     def map_image(self) -> MapSnapshot:
@@ -463,12 +459,13 @@ class SessionManager:
         *,
         fsync_each: bool = False,
         engine: Engine | None = None,
+        make_mapper: MapperFactory | None = None,
         render_map_files: Callable[[MapSnapshot], dict[str, bytes]] | None = None,
     ) -> None:
         self._data = data
         self._maps = maps
         self._fsync_each = fsync_each
-        self._engine = engine if engine is not None else Engine()
+        self._make_mapper = make_mapper or local_mapper_factory(engine or Engine())
         self._render = render_map_files
         self._lock = threading.Lock()
         self._sessions: dict[str, MappingSession] = {}
@@ -485,7 +482,7 @@ class SessionManager:
                 continue
             try:
                 store = SessionStore.load(directory, fsync_each=self._fsync_each)
-                session = MappingSession(store, self._engine)
+                session = MappingSession(store, self._make_mapper)
                 session.replay()
             except StoreError as err:
                 log.error("session %s not restored (files kept): %s", directory.name, err)
@@ -522,7 +519,7 @@ class SessionManager:
                 )
             except OSError as err:
                 raise StoreError(f"cannot create session files: {err}") from err
-            session = MappingSession(store, self._engine)
+            session = MappingSession(store, self._make_mapper)
             self._sessions[session.id] = session
             self._active[robot_id] = session.id
         log.info("session %s created for robot %s", session.id, robot_id)

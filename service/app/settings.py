@@ -60,11 +60,24 @@ class IngestSettings(_Frozen):
         default=1024, ge=1, description="robots tracked at once (queues, workers)"
     )
     max_payload_bytes: int = Field(default=1 << 20, ge=1024)
-    # Threads that process scans, round-robin over robots. One is fastest: the work holds the
-    # GIL, and more threads only trade it back and forth (see service/app/ingest.py).
-    workers: int = Field(
-        default=1, ge=1, le=64, description="ingest worker threads (round-robin over robots)"
+    # Processes that run the estimators and grids (0: in the service's process). One process
+    # estimates on one core, however many threads it has (see service/app/mapper.py).
+    mapper_processes: int = Field(
+        default=0, ge=0, le=64, description="mapper worker processes (0: in-process)"
     )
+    # Threads that process scans, round-robin over robots. In-process one is fastest: the work
+    # holds the GIL, and more threads only trade it back and forth (see service/app/ingest.py).
+    # With mapper processes a thread waits for its process without the GIL; two per process
+    # keep every process busy when two ready robots live in the same one.
+    workers: int | None = Field(
+        default=None, ge=1, le=64, description="ingest threads (default: 1, or 2 per process)"
+    )
+
+    @property
+    def worker_threads(self) -> int:
+        if self.workers is not None:
+            return self.workers
+        return 2 * self.mapper_processes if self.mapper_processes else 1
 
 
 class SecuritySettings(_Frozen):
@@ -155,6 +168,11 @@ def build_settings(
             max_robots="MAX_ROBOTS",
             max_payload_bytes="MAX_PAYLOAD_BYTES",
             workers="INGEST_WORKERS",
+        )
+        | (
+            {"mapper_processes": args.mapper_processes}
+            if getattr(args, "mapper_processes", None) is not None
+            else from_env(mapper_processes="MAPPER_PROCESSES")
         ),
         "security": {
             "token": getattr(args, "token", None) or _env(env, "TOKEN"),

@@ -82,7 +82,7 @@ def test_analyze_counts_drops_and_latency() -> None:
     assert out["dropped"] == 4
     assert out["latency_p50_ms"] == pytest.approx(10.0)
     assert out["publish_rate_per_robot_hz"] == pytest.approx(40.0)
-    ok = {"robots": 10, "load": "loadgen", **out}
+    ok = {"robots": 10, "load": "loadgen", "mapper_processes": 2, **out}
     assert [t.passed for t in scale_targets([ok])] == [False]
 
 
@@ -123,7 +123,13 @@ def test_scale_point_runs_end_to_end(tmp_path: Path) -> None:
     from bench.scale import ScaleConfig, run_point
 
     cfg = ScaleConfig(
-        robots=1, load="loadgen", warmup_s=0.2, measure_s=1.0, drain_s=0.5, path_scans=40
+        robots=1,
+        load="loadgen",
+        mapper_processes=1,
+        warmup_s=0.2,
+        measure_s=1.0,
+        drain_s=0.5,
+        path_scans=40,
     )
     point = run_point(cfg, tmp_path)
     assert point["scans_published"] > 0

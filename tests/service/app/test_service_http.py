@@ -338,3 +338,20 @@ def test_settings_refuse_open_bind_without_token(tmp_path: Path) -> None:
     assert "zzz-secret" not in json.dumps(
         build_settings(args, env={"MAPPING_TOKEN": "zzz-secret"}).describe()
     )
+
+
+def test_settings_mapper_processes_from_flag_or_environment(tmp_path: Path) -> None:
+    parser = build_parser()
+    plain = parser.parse_args(["serve", "--data-dir", str(tmp_path)])
+    default = build_settings(plain, env={})
+    assert (default.ingest.mapper_processes, default.ingest.worker_threads) == (0, 1)
+    from_env = build_settings(plain, env={"MAPPING_MAPPER_PROCESSES": "3"})
+    assert (from_env.ingest.mapper_processes, from_env.ingest.worker_threads) == (3, 6)
+    flag = parser.parse_args(["serve", "--data-dir", str(tmp_path), "--mapper-processes", "2"])
+    settings = build_settings(
+        flag, env={"MAPPING_MAPPER_PROCESSES": "3", "MAPPING_INGEST_WORKERS": "5"}
+    )
+    assert (settings.ingest.mapper_processes, settings.ingest.worker_threads) == (2, 5)
+    bad = parser.parse_args(["serve", "--data-dir", str(tmp_path), "--mapper-processes", "-1"])
+    with pytest.raises(SettingsError, match="mapper_processes"):
+        build_settings(bad, env={})

@@ -22,9 +22,9 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
 from clients.keyexpr import pose_wildcard, scan_key
 from clients.wire import Pose, decode_pose, encode_scan
 from service.app.fanout import PoseFanout
+from service.app.mapper import Engine, default_estimator_factory, local_mapper_factory
 from service.app.metrics import Metrics
 from service.app.runtime import MappingRuntime
-from service.app.sessions import Engine, default_estimator_factory
 from service.core.types import LaserScan, PoseEstimate
 
 
@@ -111,7 +111,9 @@ def test_full_queue_drops_oldest_and_never_blocks_the_callback(
     depth = 8
     runtime = runtime_factory(queue_depth=depth)
     # Swap in a gated estimator for this robot's session.
-    runtime.sessions._engine = Engine(make_estimator=lambda _: BlockingEstimator(gate, entered))
+    runtime.sessions._make_mapper = local_mapper_factory(
+        Engine(make_estimator=lambda _: BlockingEstimator(gate, entered))
+    )
     session = runtime.sessions.create("slow", 0.05, True)
     robot = SimRobot("slow")
     payloads = [robot.next_payload() for _ in range(41)]
@@ -159,8 +161,8 @@ def test_one_worker_serves_robots_round_robin_each_in_order(
     order: list[str] = []
     gate = threading.Event()
     ids = iter(["ra", "rb", "rc"])
-    runtime.sessions._engine = Engine(
-        make_estimator=lambda _: RecordingEstimator(next(ids), order, gate)
+    runtime.sessions._make_mapper = local_mapper_factory(
+        Engine(make_estimator=lambda _: RecordingEstimator(next(ids), order, gate))
     )
     sessions = {r: runtime.sessions.create(r, 0.05, True) for r in ("ra", "rb", "rc")}
     robots = {r: SimRobot(r) for r in sessions}
@@ -186,9 +188,12 @@ def test_a_second_worker_serves_other_robots_while_one_is_busy(
 ) -> None:
     gate, entered = threading.Event(), threading.Event()
     runtime = runtime_factory(queue_depth=32, workers=2)
+    runtime.sessions._make_mapper = local_mapper_factory(
+        Engine(make_estimator=lambda _: BlockingEstimator(gate, entered))
+    )
     slow = runtime.sessions.create("slow", 0.05, True)
+    runtime.sessions._make_mapper = local_mapper_factory(Engine())
     fast = runtime.sessions.create("fast", 0.05, True)
-    slow._estimator = BlockingEstimator(gate, entered)
     runtime.ingest.submit(scan_key("slow"), SimRobot("slow").next_payload())
     assert entered.wait(10), "one worker should be inside the gated estimator"
     robot = SimRobot("fast")
