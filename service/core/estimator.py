@@ -35,6 +35,7 @@ from service.core.heading import (
     track_heading,
 )
 from service.core.params import EstimatorParams
+from service.core.profile import profile_turn
 from service.core.refine import OccupiedCells
 from service.core.rotation import direction_spectrum, match_rotation, tangent_directions
 from service.core.translation import (
@@ -120,7 +121,11 @@ class ManhattanEstimator:
         self._odom: Pose2D | None = None
         self._major_axis: int | None = None
         self._keyframes: deque[_Keyframe] = deque(maxlen=max(1, self.params.local_map_keyframes))
+        # The previous scan (reference "previous", `previous_scan_fallback`) and its densities.
         self._last_scan: _Keyframe | None = None
+        self._last_scan_densities: dict[int, AxisDensity] = {}
+        # The previous scan's (angle_min, increment) and ranges, for `profile_turn`.
+        self._last_profile: tuple[tuple[float, float], FloatArray] | None = None
         self._grid: OccupiedCells | None = None
         self._grid_dirty = True
         self._dir_spectrum: npt.NDArray[np.complex128] | None = None
@@ -139,6 +144,8 @@ class ManhattanEstimator:
         self.__dict__.setdefault("_dir_spectrum", None)
         self.__dict__.setdefault("_beams", None)
         self.__dict__.setdefault("_heading_measured", False)
+        self.__dict__.setdefault("_last_scan_densities", {})
+        self.__dict__.setdefault("_last_profile", None)
 
     # ------------------------------------------------------------------ public
     def process(self, scan: LaserScan) -> PoseEstimate:
@@ -188,12 +195,44 @@ class ManhattanEstimator:
         if p.use_odometry and scan.odom is not None and self._odom is not None:
             delta = self._odom.between(scan.odom)
             return self._pose.compose(delta), PoseFlag.ODOMETRY_PRIOR
-        if not p.use_prediction or self._velocity is None or self._stamp_ns is None:
+        if not p.use_prediction:
             return self._pose, PoseFlag.NONE
-        dt = self._dt_s(scan)
-        dt = min(max(dt, 0.0), 1.0)
-        v = self._velocity
-        return self._pose.compose(Pose2D(v.x_m * dt, v.y_m * dt, v.theta_rad * dt)), PoseFlag.NONE
+        pred = self._pose
+        if self._velocity is not None and self._stamp_ns is not None:
+            dt = self._dt_s(scan)
+            dt = min(max(dt, 0.0), 1.0)
+            v = self._velocity
+            pred = self._pose.compose(Pose2D(v.x_m * dt, v.y_m * dt, v.theta_rad * dt))
+        turn = self._profile_turn(scan) if p.profile_turn else None
+        if turn is not None:
+            pred = Pose2D(pred.x_m, pred.y_m, wrap_angle(self._pose.theta_rad + turn))
+        return pred, PoseFlag.NONE
+
+    def _profile_ranges(self, scan: LaserScan) -> FloatArray:
+        """The ranges the estimator uses, NaN elsewhere (for `profile_turn`)."""
+        r = np.asarray(scan.ranges_m, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            ok = (r >= max(scan.range_min_m, 1e-6)) & (r < scan.range_max_m)
+            ok &= r <= self.params.max_range_used_m
+        return np.where(ok, r, np.nan)
+
+    def _profile_turn(self, scan: LaserScan) -> float | None:
+        """The turn since the previous scan from the range profiles, if they agree on one."""
+        p = self.params
+        last = self._last_profile
+        if last is None or last[0] != (scan.angle_min_rad, scan.angle_increment_rad):
+            return None
+        max_turn = math.radians(p.profile_turn_max_deg)
+        if self._stamp_ns is not None and scan.stamp_ns > self._stamp_ns:
+            # As far as the robot can turn since the previous scan: short on fast scanners
+            # (speed), long over a gap in a log (ACES: 75° in a 3 s gap).
+            gap_s = (scan.stamp_ns - self._stamp_ns) * 1e-9
+            reach = 2.0 * math.radians(p.max_turn_rate_deg_s) * gap_s
+            max_turn = min(max_turn, max(reach, math.radians(2.0)))
+        turn = profile_turn(last[1], self._profile_ranges(scan), scan.angle_increment_rad, max_turn)
+        if turn is None or turn.score < p.profile_turn_min_score:
+            return None
+        return turn.turn_rad
 
     def _dt_s(self, scan: LaserScan) -> float:
         """Time since the previous scan for the motion model, robust to bursty stamps.
@@ -351,7 +390,8 @@ class ManhattanEstimator:
             theta = pred.theta_rad
             heading_quality = 0.3
         if predicted and p.heading_check and not odom_prior and self._grid_ready():
-            checked = self._check_heading(pts, pred, theta, heading_ok, meas)
+            gap_s = (scan.stamp_ns - (self._stamp_ns or scan.stamp_ns)) * 1e-9
+            checked = self._check_heading(pts, pred, theta, heading_ok, meas, gap_s=gap_s)
             if checked is not None:
                 theta, absolute = checked
                 if absolute and not heading_ok:
@@ -431,6 +471,33 @@ class ManhattanEstimator:
                 refine=p.subbin_refinement,
                 prior_sigma_m=prior_sigma_t,
             )
+        # An axis the local map leaves ambiguous may still be clear against the previous scan:
+        # a crisp reference (the local map is blurred by its keyframes' own errors) and, over one
+        # scan, a small motion, so a few points suffice (ACES: a robot stopped in a corridor
+        # was predicted on at its last speed).
+        if p.previous_scan_fallback and not odom_prior and self._last_scan is not None:
+            for axis in (0, 1):
+                if not matches[axis].ambiguous:
+                    continue
+                shifts, energy = correlate_axis(
+                    self._last_scan_density(axis),
+                    cur[:, axis],
+                    cur_w[:, axis],
+                    centre_xy[axis],
+                    half_t,
+                )
+                fallback = pick_peak(
+                    shifts,
+                    energy,
+                    (pred.x_m, pred.y_m)[axis],
+                    support[axis],
+                    min_support=p.previous_scan_min_support,
+                    ambiguity_ratio=p.ambiguity_ratio,
+                    refine=p.subbin_refinement,
+                    prior_sigma_m=prior_sigma_t,
+                )
+                if not fallback.ambiguous:
+                    matches[axis] = fallback
         mx, my = matches[0], matches[1]
         x, y = mx.offset_m, my.offset_m
         if mx.ambiguous:
@@ -500,6 +567,8 @@ class ManhattanEstimator:
         theta: float,
         heading_ok: bool,
         meas: HeadingMeasurement,
+        *,
+        gap_s: float,
     ) -> tuple[float, bool] | None:
         """Re-anchor the heading: the candidate that best fits the local map's geometry.
 
@@ -514,6 +583,8 @@ class ManhattanEstimator:
         assert self._grid is not None
         prev = self._pose.theta_rad
         reach = math.radians(p.heading_check_max_turn_deg)
+        # Over a gap in the log the robot may have turned anywhere (ACES: 75° in 3 s).
+        reach = max(reach, min(math.pi, 0.5 * math.radians(p.max_turn_rate_deg_s) * gap_s))
         turn = max(abs(wrap_angle(theta - prev)), abs(wrap_angle(pred.theta_rad - prev)))
         # Cheap trigger: steady motion on a confident Manhattan heading needs no check.
         if heading_ok and turn < math.radians(p.heading_check_min_turn_deg):
@@ -622,6 +693,22 @@ class ManhattanEstimator:
             ref.densities[axis] = density
         return density
 
+    def _last_scan_density(self, axis: int) -> AxisDensity:
+        """The previous scan's density along `axis`, built on first use."""
+        assert self._last_scan is not None
+        density = self._last_scan_densities.get(axis)
+        if density is None:
+            p = self.params
+            density = axis_density(
+                np.ascontiguousarray(self._last_scan.points_map_m[:, axis]),
+                np.ascontiguousarray(self._last_scan.weights[:, axis]),
+                p.translation_step_m,
+                p.translation_bin_m,
+                max(p.translation_window_m, p.translation_window_pred_m),
+            )
+            self._last_scan_densities[axis] = density
+        return density
+
     def _grid_ready(self) -> bool:
         if not self._keyframes:
             return False
@@ -718,6 +805,9 @@ class ManhattanEstimator:
                 self._velocity = Pose2D(vx, vy, w)
         if scan.odom is not None:
             self._odom = scan.odom
+        if p.profile_turn and p.use_prediction:
+            key = (scan.angle_min_rad, scan.angle_increment_rad)
+            self._last_profile = (key, self._profile_ranges(scan))
         is_kf = False
         if pts is not None and not flags & PoseFlag.DEGENERATE:
             if not self._keyframes:
@@ -734,9 +824,12 @@ class ManhattanEstimator:
                 ambiguous = PoseFlag.AMBIGUOUS_X | PoseFlag.AMBIGUOUS_Y
                 if flags & ambiguous and dist < p.keyframe_ambiguous_distance_m:
                     is_kf = False
-            frame = self._frame(pts, pose, work) if is_kf or p.reference == "previous" else None
-            if p.reference == "previous":
+            keep_last = p.reference == "previous" or p.previous_scan_fallback
+            frame = self._frame(pts, pose, work) if is_kf or keep_last else None
+            if keep_last:
                 self._last_scan = frame
+                self._last_scan_densities = {}
+            if p.reference == "previous":
                 self._ref = None
             if is_kf and frame is not None:
                 self._keyframes.append(frame)

@@ -40,6 +40,9 @@ class EstimatorParams:
     heading_tracking_max_turn_deg: float = 2.0  # predicted turn per scan below this, on a
     # measured heading: the fine search alone around the prediction (0: always search) ...
     heading_tracking_max_period_s: float = 0.1  # ... when scans come at least this often
+    profile_turn: bool = True  # without odometry: the turn predicted from the range profiles
+    profile_turn_min_score: float = 0.5  # share of beams that must agree at that turn
+    profile_turn_max_deg: float = 90.0  # ± search of that turn (less between frequent scans)
     max_speed_m_s: float = 2.0  # clamp of the constant-velocity model
     max_turn_rate_deg_s: float = 120.0
     max_accel_m_s2: float = 0.5  # bound on the constant-velocity model's change (0: none)
@@ -72,6 +75,8 @@ class EstimatorParams:
     translation_gate_both: bool = False  # gate both axes (default: the less supported one)
     refine_2d: bool = True  # joint 2-D check of the 1-D peak candidates
     refine_2d_gated: bool = False  # run it also after a gated correlation
+    previous_scan_fallback: bool = True  # an ambiguous axis tries the previous scan as reference
+    previous_scan_min_support: float = 3.0  # ... where this many constraining points suffice
     heading_check: bool = True  # re-anchor the heading quadrant on the local map's geometry
     heading_check_min_turn_deg: float = 4.0  # run it when turning faster than this per scan
     heading_check_max_turn_deg: float = 20.0  # candidates within this of the prediction
