@@ -511,7 +511,6 @@ class ManhattanEstimator:
         prior. Returns (heading, is_manhattan) when another candidate is clearly better.
         """
         p = self.params
-        assert self._grid is not None
         prev = self._pose.theta_rad
         reach = math.radians(p.heading_check_max_turn_deg)
         turn = max(abs(wrap_angle(theta - prev)), abs(wrap_angle(pred.theta_rad - prev)))
@@ -560,9 +559,8 @@ class ManhattanEstimator:
         g = p.heading_check_step_m * np.arange(-n, n + 1, dtype=np.float64)
         grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
         grid += np.array([pred.x_m, pred.y_m])
-        scores = np.array(
-            [float(self._grid.hit_fraction(_rotate(sub, c), grid).max()) for c, _ in uniq]
-        )
+        cells = self._occupied()
+        scores = np.array([float(cells.hit_fraction(_rotate(sub, c), grid).max()) for c, _ in uniq])
         # A candidate far from the prediction must beat the current heading by more.
         far = np.array([offset(c) / reach for c, _ in uniq])
         needed = scores[0] + p.heading_check_margin * (1.0 + 2.0 * far)
@@ -623,25 +621,27 @@ class ManhattanEstimator:
         return density
 
     def _grid_ready(self) -> bool:
-        if not self._keyframes:
-            return False
+        return bool(self._keyframes)
+
+    def _occupied(self) -> OccupiedCells:
+        """The local map's occupied cells, built on first use after a keyframe."""
+        # On first use (speed): the heading check and the 2-D refinement mostly return early.
         if self._grid is None or self._grid_dirty:
             pts = np.concatenate([f.points_map_m for f in self._keyframes])
             self._grid = OccupiedCells(pts)
             self._grid_dirty = False
-        return True
+        return self._grid
 
     def _refine(
         self, cur: FloatArray, x: float, y: float, mx: AxisMatch, my: AxisMatch
     ) -> tuple[float, float]:
         """Joint 2-D choice among the 1-D peak candidates (the paper's axes are independent)."""
-        assert self._grid is not None
         xs = [x] + [c for c in mx.peak_offsets_m if abs(c - x) > 0.02]
         ys = [y] + [c for c in my.peak_offsets_m if abs(c - y) > 0.02]
         if len(xs) == 1 and len(ys) == 1:
             return x, y
         cand = np.array([(cx, cy) for cx in xs for cy in ys])
-        scores = self._grid.hit_fraction(cur, cand)
+        scores = self._occupied().hit_fraction(cur, cand)
         best = int(np.argmax(scores))
         # Switch only for a clearly better combination: the 1-D answer is sub-bin refined.
         if scores[best] > scores[0] + 0.05:
