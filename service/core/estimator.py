@@ -20,6 +20,7 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import islice
 
 import numpy as np
 import numpy.typing as npt
@@ -36,7 +37,12 @@ from service.core.heading import (
 )
 from service.core.params import EstimatorParams
 from service.core.refine import OccupiedCells
-from service.core.rotation import direction_spectrum, match_rotation, tangent_directions
+from service.core.rotation import (
+    direction_counts,
+    direction_spectrum,
+    match_rotation,
+    tangent_directions,
+)
 from service.core.translation import (
     AxisDensity,
     AxisMatch,
@@ -56,13 +62,16 @@ from service.core.types import (
 log = logging.getLogger(__name__)
 
 
-def _sides(frame: _Keyframe) -> npt.NDArray[np.bool_]:
+def _sides(points_map_m: FloatArray, pose: Pose2D) -> npt.NDArray[np.bool_]:
     """(M, 2): whether each point lies on the + side of its scan's sensor along x / y.
 
     A wall face is seen from the sensor's side, so this tells the two faces of a thin wall
     apart (their normals point opposite ways).
     """
-    return np.asarray(frame.points_map_m >= np.array([frame.pose.x_m, frame.pose.y_m]))
+    out = np.empty(points_map_m.shape, dtype=np.bool_)
+    np.greater_equal(points_map_m[:, 0], pose.x_m, out=out[:, 0])
+    np.greater_equal(points_map_m[:, 1], pose.y_m, out=out[:, 1])
+    return out
 
 
 def _rotate(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
@@ -79,6 +88,16 @@ class _Keyframe:
     points_map_m: FloatArray  # (M, 2) in the map frame
     weights: FloatArray  # (M, 2) orientation weights (x, y)
     directions_rad: FloatArray  # surface directions of the reliable points, map frame
+    # Derived once per keyframe, not at every reference rebuild (speed).
+    sides: npt.NDArray[np.bool_] = field(init=False)  # `_sides`
+    direction_counts: npt.NDArray[np.intp] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.derive()
+
+    def derive(self) -> None:
+        self.sides = _sides(self.points_map_m, self.pose)
+        self.direction_counts = direction_counts(self.directions_rad)
 
 
 @dataclass(slots=True)
@@ -139,6 +158,9 @@ class ManhattanEstimator:
         self.__dict__.setdefault("_dir_spectrum", None)
         self.__dict__.setdefault("_beams", None)
         self.__dict__.setdefault("_heading_measured", False)
+        for frame in [*self.__dict__.get("_keyframes", ()), self.__dict__.get("_last_scan")]:
+            if frame is not None and not hasattr(frame, "direction_counts"):
+                frame.derive()
 
     # ------------------------------------------------------------------ public
     def process(self, scan: LaserScan) -> PoseEstimate:
@@ -291,9 +313,10 @@ class ManhattanEstimator:
         use_dirs = predicted and p.direction_prior and not odom_prior and bool(self._keyframes)
         if meas is None and use_dirs and dirs_ok.sum() >= p.min_points:
             if self._dir_spectrum is None:
-                self._dir_spectrum = direction_spectrum(
-                    np.concatenate([f.directions_rad for f in self._keyframes])
-                )
+                counts = self._keyframes[0].direction_counts
+                for f in islice(self._keyframes, 1, None):
+                    counts = counts + f.direction_counts
+                self._dir_spectrum = direction_spectrum(counts)
             theta_dir, contrast = match_rotation(
                 self._dir_spectrum,
                 dirs[dirs_ok],
@@ -586,7 +609,7 @@ class ManhattanEstimator:
             return None
         pts = np.concatenate([f.points_map_m for f in frames])
         w = np.concatenate([f.weights for f in frames])
-        sides = np.concatenate([_sides(f) for f in frames])
+        sides = np.concatenate([f.sides for f in frames])
         if len(frames) > 1:
             # The local map within the radius of its newest keyframe (not of the prediction,
             # so that the reference stays the same from one keyframe to the next).
