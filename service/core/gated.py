@@ -66,8 +66,15 @@ class SortedReference:
         self.span_m = (float(along.max()) - self.along_origin_m + 1.0) * 2.0 if along.size else 1.0
         bucket = np.floor(key / _BUCKET_M)
         combined = bucket * self.span_m + (along - self.along_origin_m)
-        order = np.argsort(combined, kind="stable")
-        self.combined = np.ascontiguousarray(combined[order])
+        # Distinct keys have one sorted order, so the fast (unstable, SIMD) sort gives the
+        # stable sort's order unless two keys are equal (or NaN): then the stable sort (~3x
+        # slower on these ever-changing keys) decides, as before.
+        order = combined.argsort()
+        sorted_keys = combined[order]
+        if not (sorted_keys[1:] > sorted_keys[:-1]).all():
+            order = combined.argsort(kind="stable")
+            sorted_keys = combined[order]
+        self.combined = np.ascontiguousarray(sorted_keys)
         self.other_m = np.ascontiguousarray(key[order])
         self.along_m = np.ascontiguousarray(along[order])
         self.weights = np.ascontiguousarray(weights.take(keep, axis=0)[order, axis])
