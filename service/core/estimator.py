@@ -20,6 +20,7 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from itertools import islice
 
 import numpy as np
 import numpy.typing as npt
@@ -37,7 +38,12 @@ from service.core.heading import (
 from service.core.params import EstimatorParams
 from service.core.profile import profile_turn
 from service.core.refine import OccupiedCells
-from service.core.rotation import direction_spectrum, match_rotation, tangent_directions
+from service.core.rotation import (
+    direction_counts,
+    direction_spectrum,
+    match_rotation,
+    tangent_directions,
+)
 from service.core.translation import (
     AxisDensity,
     AxisMatch,
@@ -57,13 +63,16 @@ from service.core.types import (
 log = logging.getLogger(__name__)
 
 
-def _sides(frame: _Keyframe) -> npt.NDArray[np.bool_]:
+def _sides(points_map_m: FloatArray, pose: Pose2D) -> npt.NDArray[np.bool_]:
     """(M, 2): whether each point lies on the + side of its scan's sensor along x / y.
 
     A wall face is seen from the sensor's side, so this tells the two faces of a thin wall
     apart (their normals point opposite ways).
     """
-    return np.asarray(frame.points_map_m >= np.array([frame.pose.x_m, frame.pose.y_m]))
+    out = np.empty(points_map_m.shape, dtype=np.bool_)
+    np.greater_equal(points_map_m[:, 0], pose.x_m, out=out[:, 0])
+    np.greater_equal(points_map_m[:, 1], pose.y_m, out=out[:, 1])
+    return out
 
 
 def _rotate(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
@@ -80,6 +89,16 @@ class _Keyframe:
     points_map_m: FloatArray  # (M, 2) in the map frame
     weights: FloatArray  # (M, 2) orientation weights (x, y)
     directions_rad: FloatArray  # surface directions of the reliable points, map frame
+    # Derived once per keyframe, not at every reference rebuild (speed).
+    sides: npt.NDArray[np.bool_] = field(init=False)  # `_sides`
+    direction_counts: npt.NDArray[np.intp] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.derive()
+
+    def derive(self) -> None:
+        self.sides = _sides(self.points_map_m, self.pose)
+        self.direction_counts = direction_counts(self.directions_rad)
 
 
 @dataclass(slots=True)
@@ -146,6 +165,9 @@ class ManhattanEstimator:
         self.__dict__.setdefault("_heading_measured", False)
         self.__dict__.setdefault("_last_scan_densities", {})
         self.__dict__.setdefault("_last_profile", None)
+        for frame in [*self.__dict__.get("_keyframes", ()), self.__dict__.get("_last_scan")]:
+            if frame is not None and not hasattr(frame, "direction_counts"):
+                frame.derive()
 
     # ------------------------------------------------------------------ public
     def process(self, scan: LaserScan) -> PoseEstimate:
@@ -330,9 +352,10 @@ class ManhattanEstimator:
         use_dirs = predicted and p.direction_prior and not odom_prior and bool(self._keyframes)
         if meas is None and use_dirs and dirs_ok.sum() >= p.min_points:
             if self._dir_spectrum is None:
-                self._dir_spectrum = direction_spectrum(
-                    np.concatenate([f.directions_rad for f in self._keyframes])
-                )
+                counts = self._keyframes[0].direction_counts
+                for f in islice(self._keyframes, 1, None):
+                    counts = counts + f.direction_counts
+                self._dir_spectrum = direction_spectrum(counts)
             theta_dir, contrast = match_rotation(
                 self._dir_spectrum,
                 dirs[dirs_ok],
@@ -580,7 +603,6 @@ class ManhattanEstimator:
         prior. Returns (heading, is_manhattan) when another candidate is clearly better.
         """
         p = self.params
-        assert self._grid is not None
         prev = self._pose.theta_rad
         reach = math.radians(p.heading_check_max_turn_deg)
         # Over a gap in the log the robot may have turned anywhere (ACES: 75° in 3 s).
@@ -631,9 +653,8 @@ class ManhattanEstimator:
         g = p.heading_check_step_m * np.arange(-n, n + 1, dtype=np.float64)
         grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
         grid += np.array([pred.x_m, pred.y_m])
-        scores = np.array(
-            [float(self._grid.hit_fraction(_rotate(sub, c), grid).max()) for c, _ in uniq]
-        )
+        cells = self._occupied()
+        scores = np.array([float(cells.hit_fraction(_rotate(sub, c), grid).max()) for c, _ in uniq])
         # A candidate far from the prediction must beat the current heading by more.
         far = np.array([offset(c) / reach for c, _ in uniq])
         needed = scores[0] + p.heading_check_margin * (1.0 + 2.0 * far)
@@ -659,7 +680,7 @@ class ManhattanEstimator:
             return None
         pts = np.concatenate([f.points_map_m for f in frames])
         w = np.concatenate([f.weights for f in frames])
-        sides = np.concatenate([_sides(f) for f in frames])
+        sides = np.concatenate([f.sides for f in frames])
         if len(frames) > 1:
             # The local map within the radius of its newest keyframe (not of the prediction,
             # so that the reference stays the same from one keyframe to the next).
@@ -710,25 +731,27 @@ class ManhattanEstimator:
         return density
 
     def _grid_ready(self) -> bool:
-        if not self._keyframes:
-            return False
+        return bool(self._keyframes)
+
+    def _occupied(self) -> OccupiedCells:
+        """The local map's occupied cells, built on first use after a keyframe."""
+        # On first use (speed): the heading check and the 2-D refinement mostly return early.
         if self._grid is None or self._grid_dirty:
             pts = np.concatenate([f.points_map_m for f in self._keyframes])
             self._grid = OccupiedCells(pts)
             self._grid_dirty = False
-        return True
+        return self._grid
 
     def _refine(
         self, cur: FloatArray, x: float, y: float, mx: AxisMatch, my: AxisMatch
     ) -> tuple[float, float]:
         """Joint 2-D choice among the 1-D peak candidates (the paper's axes are independent)."""
-        assert self._grid is not None
         xs = [x] + [c for c in mx.peak_offsets_m if abs(c - x) > 0.02]
         ys = [y] + [c for c in my.peak_offsets_m if abs(c - y) > 0.02]
         if len(xs) == 1 and len(ys) == 1:
             return x, y
         cand = np.array([(cx, cy) for cx in xs for cy in ys])
-        scores = self._grid.hit_fraction(cur, cand)
+        scores = self._occupied().hit_fraction(cur, cand)
         best = int(np.argmax(scores))
         # Switch only for a clearly better combination: the 1-D answer is sub-bin refined.
         if scores[best] > scores[0] + 0.05:

@@ -32,6 +32,12 @@ def _side_offset(sides: npt.NDArray[np.bool_]) -> FloatArray:
     return np.where(sides, _SIDE_OFFSET_M, 0.0)
 
 
+def _clip(values: FloatArray, hi: float) -> FloatArray:
+    """`np.clip(values, 0, hi)` in place, without its wrapper's overhead."""
+    np.maximum(values, 0.0, out=values)
+    return np.minimum(values, hi, out=values)
+
+
 class SortedReference:
     """Reference points bucketed by the other coordinate, sorted along the axis within a bucket.
 
@@ -60,8 +66,15 @@ class SortedReference:
         self.span_m = (float(along.max()) - self.along_origin_m + 1.0) * 2.0 if along.size else 1.0
         bucket = np.floor(key / _BUCKET_M)
         combined = bucket * self.span_m + (along - self.along_origin_m)
-        order = np.argsort(combined, kind="stable")
-        self.combined = np.ascontiguousarray(combined[order])
+        # Distinct keys have one sorted order, so the fast (unstable, SIMD) sort gives the
+        # stable sort's order unless two keys are equal (or NaN): then the stable sort (~3x
+        # slower on these ever-changing keys) decides, as before.
+        order = combined.argsort()
+        sorted_keys = combined[order]
+        if not (sorted_keys[1:] > sorted_keys[:-1]).all():
+            order = combined.argsort(kind="stable")
+            sorted_keys = combined[order]
+        self.combined = np.ascontiguousarray(sorted_keys)
         self.other_m = np.ascontiguousarray(key[order])
         self.along_m = np.ascontiguousarray(along[order])
         self.weights = np.ascontiguousarray(weights.take(keep, axis=0)[order, axis])
@@ -90,7 +103,9 @@ def correlate_axis_gated(  # noqa: PLR0917 - mirrors correlate_axis plus the ban
     k = 2 * n_half + 1
     shifts = centre_m + step_m * np.arange(-n_half, n_half + 1, dtype=np.float64)
     energy = np.zeros(k, dtype=np.float64)
-    sel = np.flatnonzero(cur_weights > min_weight)
+    # Array methods rather than np.* wrappers below: ~1 µs less per call on these few
+    # thousand pairs (speed).
+    sel = (cur_weights > min_weight).nonzero()[0]
     if sel.size == 0 or ref.other_m.size == 0:
         return shifts, energy
     co = cur_other_m.take(sel)
@@ -105,27 +120,27 @@ def correlate_axis_gated(  # noqa: PLR0917 - mirrors correlate_axis plus the ban
     d_hi = float(shifts[0]) + (n_ext - 1 - half) * step_m + _MARGIN_M
     b_lo = np.floor((co - gate) / _BUCKET_M)
     n_b = (np.floor((co + gate) / _BUCKET_M) - b_lo).astype(np.intp) + 1
-    qi = np.repeat(np.arange(sel.size), n_b)
-    qb = np.repeat(b_lo, n_b) + (np.arange(qi.size) - np.repeat(np.cumsum(n_b) - n_b, n_b))
+    qi = np.arange(sel.size).repeat(n_b)
+    qb = b_lo.repeat(n_b) + (np.arange(qi.size) - (n_b.cumsum() - n_b).repeat(n_b))
     base = qb * ref.span_m
     rel = ca.take(qi) - ref.along_origin_m
-    lo = np.searchsorted(ref.combined, base + np.clip(rel + d_lo, 0.0, ref.span_m), side="left")
-    hi = np.searchsorted(ref.combined, base + np.clip(rel + d_hi, 0.0, ref.span_m), side="right")
+    lo = ref.combined.searchsorted(base + _clip(rel + d_lo, ref.span_m), side="left")
+    hi = ref.combined.searchsorted(base + _clip(rel + d_hi, ref.span_m), side="right")
     cnt = hi - lo
-    total = int(cnt.sum())
+    ends = cnt.cumsum()
+    total = int(ends[-1])
     if total == 0:
         return shifts, energy
-    ci = np.repeat(qi, cnt)
-    starts = np.cumsum(cnt) - cnt
-    rj = np.repeat(lo - starts, cnt) + np.arange(total)
-    in_band = np.abs(ref.other_m.take(rj) - co.take(ci)) <= gate.take(ci)
-    ci, rj = ci[in_band], rj[in_band]
+    ci = qi.repeat(cnt)
+    rj = (lo - (ends - cnt)).repeat(cnt) + np.arange(total)
+    pair = (np.abs(ref.other_m.take(rj) - co.take(ci)) <= gate.take(ci)).nonzero()[0]
+    ci, rj = ci.take(pair), rj.take(pair)
     # The shift that puts current point i onto reference point j.
-    d = ref.along_m.take(rj) - ca.take(ci)
+    pos = (ref.along_m.take(rj) - ca.take(ci) - float(shifts[0])) / step_m + half
     w = cw.take(ci) * ref.weights.take(rj)
-    pos = (d - float(shifts[0])) / step_m + half
     ok = (pos >= 0.0) & (pos < n_ext - 1)
-    pos, w = pos[ok], w[ok]
+    if not ok.all():  # the 2-D query's margin: rarely any
+        pos, w = pos[ok], w[ok]
     if pos.size == 0:
         return shifts, energy
     # Linear split onto the step grid, then the triangle of the paper's bin.

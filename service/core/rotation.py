@@ -35,23 +35,36 @@ def tangent_directions(
     d = points_xy_m[4:] - points_xy_m[:-4]
     near = np.hypot(*np.diff(points_xy_m, axis=0).T) < max_gap_m
     good = near[:-3] & near[1:-2] & near[2:-1] & near[3:]
-    good &= np.abs(d).sum(axis=1) > 1e-6  # coincident neighbours have no direction
+    # Coincident neighbours have no direction (column by column: (n, 2) sums are slow).
+    good &= np.abs(d[:, 0]) + np.abs(d[:, 1]) > 1e-6
     ang[2:-2] = np.arctan2(d[:, 1], d[:, 0]) % math.pi
     ok[2:-2] = good
     return ang, ok
 
 
-def direction_histogram(directions_rad: FloatArray) -> FloatArray:
-    """Smoothed circular histogram (modulo π) of surface directions."""
+def direction_counts(directions_rad: FloatArray) -> npt.NDArray[np.intp]:
+    """Circular histogram counts (modulo π) of surface directions: the counts of sets add up."""
     idx = np.floor((directions_rad % math.pi) / _BIN_RAD).astype(np.int64) % _N_BINS
-    h = np.bincount(idx, minlength=_N_BINS).astype(np.float64)
+    return np.bincount(idx, minlength=_N_BINS)
+
+
+def _smoothed(counts: npt.NDArray[np.intp]) -> FloatArray:
+    h = counts.astype(np.float64)
     padded = np.concatenate((h[-6:], h, h[:6]))
     return np.asarray(np.convolve(padded, _SMOOTH, mode="valid"), dtype=np.float64)
 
 
-def direction_spectrum(directions_rad: FloatArray) -> npt.NDArray[np.complex128]:
-    """Spectrum of the direction histogram: a reference for `match_rotation`, kept per map."""
-    return np.asarray(np.fft.rfft(direction_histogram(directions_rad)), dtype=np.complex128)
+def direction_histogram(directions_rad: FloatArray) -> FloatArray:
+    """Smoothed circular histogram (modulo π) of surface directions."""
+    return _smoothed(direction_counts(directions_rad))
+
+
+def direction_spectrum(counts: npt.NDArray[np.intp]) -> npt.NDArray[np.complex128]:
+    """Spectrum of the histogram of these `direction_counts`: `match_rotation`'s reference.
+
+    From counts, so that a local map sums its keyframes' counts instead of re-binning them all.
+    """
+    return np.asarray(np.fft.rfft(_smoothed(counts)), dtype=np.complex128)
 
 
 def match_rotation(

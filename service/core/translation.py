@@ -101,11 +101,14 @@ def axis_density(
     raw = np.bincount(idx, weights=ref_weights, minlength=n_bins)[:n_bins]
     # Box of `half + 1` bins twice = the triangle 1 - |t| / (half + 1), |t| <= half, centred.
     width = half + 1
-    values = raw
+    values: FloatArray = np.asarray(raw, dtype=np.float64)  # float already: no copy
     for lead in (half // 2 + half % 2, half // 2):  # the two boxes' centring adds up to `half`
-        c = np.concatenate((np.zeros(width), np.cumsum(values)))
-        boxed = c[width:] - c[:-width]  # boxed[j] = Σ values[j - width + 1 .. j]
-        values = np.concatenate((boxed[lead:], np.zeros(lead)))
+        c = np.zeros(n_bins + width)
+        values.cumsum(out=c[width:])
+        # boxed[j] = c[width + j] - c[j] = Σ values[j - width + 1 .. j], shifted left by `lead`.
+        boxed = np.zeros(n_bins)
+        np.subtract(c[width + lead :], c[lead:-width], out=boxed[: n_bins - lead])
+        values = boxed
     return AxisDensity(
         origin_m, step_m, max_half_steps, np.asarray(values / width, dtype=np.float64)
     )
