@@ -424,6 +424,13 @@ class ManhattanEstimator:
                     flags |= PoseFlag.NON_MANHATTAN
                     heading_ok, heading_quality = False, 0.6
 
+        if predicted and not heading_ok and not odom_prior and p.wall_reanchor_fraction > 0.0:
+            anchored = self._reanchor_on_walls(pts, meas, theta)
+            if anchored is not None:
+                theta = anchored
+                flags &= ~(PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL)
+                heading_ok, heading_quality = True, 1.0
+
         # --- translation (paper §III) --------------------------------------------------
         theta = wrap_angle(theta)  # the pose's heading: `_commit` reuses `cur` when it matches
         cur = _rotate(pts, theta)
@@ -663,6 +670,38 @@ class ManhattanEstimator:
             return None
         best = int(better[np.argmax(scores[better])])
         return wrap_angle(uniq[best][0]), uniq[best][1]
+
+    def _reanchor_on_walls(
+        self, pts: FloatArray, meas: HeadingMeasurement, theta: float
+    ) -> float | None:
+        """The paper's absolute heading again, after a relative one drifted from the walls.
+
+        A relative heading (direction histograms, range profiles, the prediction) drifts, and
+        the Manhattan search around it then no longer reaches the walls: each scan is 'without
+        a dominant wall' and the drift stays (Intel: 24° from scan ~420 on). When the paper's
+        prior-free search finds strong walls, the member of their family nearest the current
+        heading is taken (the ±45° rule), if the correction is plausible as drift.
+        """
+        p = self.params
+        free = measure_heading(
+            pts,
+            None,
+            0.0,
+            math.radians(p.heading_step_deg),
+            p.heading_bin_m,
+            score=p.heading_score,
+            coarse_step_rad=math.radians(p.heading_coarse_step_deg),
+            coarse_bin_m=p.heading_coarse_bin_m,
+            refine=p.subbin_refinement,
+            max_range_m=p.heading_max_range_m,
+            same_points=meas,
+        )
+        if free.peak_fraction < p.wall_reanchor_fraction:
+            return None
+        anchored = resolve_heading(free.angle_rad, theta)
+        if abs(wrap_angle(anchored - theta)) > math.radians(p.wall_reanchor_max_deg):
+            return None
+        return anchored
 
     # ------------------------------------------------------------------ reference
     def _reference(self) -> _Reference | None:

@@ -9,6 +9,7 @@ import pytest
 from test_estimator_known import Segments, box, cast, room  # sibling module (pytest's path)
 
 from service.core.estimator import ManhattanEstimator
+from service.core.heading import measure_heading
 from service.core.params import EstimatorParams
 from service.core.profile import profile_turn
 from service.core.types import LaserScan, Pose2D, wrap_angle
@@ -69,3 +70,29 @@ def test_fast_turn_in_a_round_hall_keeps_the_heading() -> None:
     assert errors[True] < 3.0, errors
     # The constant-velocity prediction alone does not follow this turn (the test has teeth).
     assert errors[False] > 5.0, errors
+
+
+@pytest.mark.parametrize(("drift_deg", "anchored"), [(14.0, True), (-25.0, True), (40.0, False)])
+def test_drifted_relative_heading_is_reanchored_on_strong_walls(
+    drift_deg: float, anchored: bool
+) -> None:
+    """A relative heading that drifted from the walls snaps back (within the drift bound)."""
+    truth = Pose2D(0.2, 0.1, math.radians(17.0))
+    est = ManhattanEstimator(EstimatorParams(use_odometry=False))
+    pts = est._points(cast(room(), truth, noise_m=0.005, rng=np.random.default_rng(4)))
+    meas = measure_heading(pts, None, 0.0, math.radians(0.1), 0.02)
+    got = est._reanchor_on_walls(pts, meas, truth.theta_rad + math.radians(drift_deg))
+    if not anchored:
+        assert got is None
+        return
+    assert got is not None
+    assert abs(math.degrees(wrap_angle(got - truth.theta_rad))) < 0.3
+
+
+def test_walls_too_weak_do_not_reanchor() -> None:
+    est = ManhattanEstimator(EstimatorParams(use_odometry=False))
+    pts = est._points(
+        cast(_hall(), Pose2D(0.0, 0.0, 0.3), noise_m=0.01, rng=np.random.default_rng(1))
+    )
+    meas = measure_heading(pts, None, 0.0, math.radians(0.1), 0.02)
+    assert est._reanchor_on_walls(pts, meas, 0.5) is None
