@@ -343,7 +343,7 @@ class ManhattanEstimator:
             p.heading_prior_sigma_odom_deg if odom_prior else p.heading_prior_sigma_deg
         )
         prior_theta = pred.theta_rad
-        dirs, dirs_ok = tangent_directions(pts)
+        dirs, dirs_ok = self._directions(pts)
         work = _ScanWork(dirs, dirs_ok)
         rotation_from_dirs: float | None = None
         meas = self._track_heading(pts, pred, scan) if predicted else None
@@ -797,13 +797,26 @@ class ManhattanEstimator:
             return float(cand[best, 0]), float(cand[best, 1])
         return x, y
 
+    def _directions(self, pts: FloatArray) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+        """Surface directions; on sparse scans also from far, collinear neighbours.
+
+        A 180-beam scanner leaves most far points more than 0.3 m apart; a dense one (the
+        UTM-30LX) has close neighbours for most of them, and there the far collinear points
+        measured worse (synthetic loop gap 0.02 -> 1.6 m): their full weight on the lateral
+        axis carries the heading error at long range.
+        """
+        p = self.params
+        sparse = pts.shape[0] < p.translation_gate_min_points
+        deviation = p.direction_line_deviation if sparse else 0.0
+        return tangent_directions(pts, max_line_deviation=deviation)
+
     # ------------------------------------------------------------------ bookkeeping
     def _frame(self, pts: FloatArray, pose: Pose2D, work: _ScanWork | None) -> _Keyframe:
         """The scan as a keyframe at `pose`, reusing what `_process` computed for it."""
         if work is not None:
             dirs, ok = work.dirs_rad, work.dirs_ok
         else:
-            dirs, ok = tangent_directions(pts)
+            dirs, ok = self._directions(pts)
         if (
             work is not None
             and work.rotated_m is not None

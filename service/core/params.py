@@ -67,6 +67,7 @@ class EstimatorParams:
     direction_window_deg: float = 20.0  # ± search of that rotation around the prediction
     direction_sigma_deg: float = 2.0  # trust in it as the Manhattan heading's prior
     direction_min_contrast: float = 0.1
+    direction_line_deviation: float = 0.05  # sparse scans: far collinear points get a direction
     wall_reanchor_fraction: float = 0.25  # on a relative heading, prior-free walls this strong ...
     wall_reanchor_max_deg: float = 30.0  # ... within this of it make the heading absolute again
     translation_gate_m: float = 0.15  # > 0: correlate only pairs this close on the other axis

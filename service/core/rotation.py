@@ -24,17 +24,33 @@ _SMOOTH = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)  # σ = 1°
 
 
 def tangent_directions(
-    points_xy_m: FloatArray, max_gap_m: float = 0.3
+    points_xy_m: FloatArray, max_gap_m: float = 0.3, max_line_deviation: float = 0.05
 ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
-    """Surface direction (radians, modulo π) of every point and whether it is reliable."""
+    """Surface direction (radians, modulo π) of every point and whether it is reliable.
+
+    The direction is the chord from the second neighbour before to the second after. It is
+    reliable when the five points are close together (`max_gap_m`), or, farther apart, when
+    they lie on a line: the middle three within `max_line_deviation` × the chord's length of
+    it. Far along a wall the beams are spread wide; without a direction those points would
+    vote on both axes, and as they keep their place relative to the robot, they vote for
+    standing still (a corridor seen at grazing angles). `max_line_deviation` 0: close points only.
+    """
     m = points_xy_m.shape[0]
     ang = np.zeros(m)
     ok = np.zeros(m, dtype=bool)
     if m < 5:
         return ang, ok
     d = points_xy_m[4:] - points_xy_m[:-4]
-    near = np.hypot(*np.diff(points_xy_m, axis=0).T) < max_gap_m
+    gaps = np.hypot(*np.diff(points_xy_m, axis=0).T)
+    near = gaps < max_gap_m
     good = near[:-3] & near[1:-2] & near[2:-1] & near[3:]
+    if max_line_deviation > 0.0:
+        # Distance of each middle point from the chord line, times the chord's length.
+        deviation = np.zeros(m - 4)
+        for k in (1, 2, 3):
+            v = points_xy_m[k : m - 4 + k] - points_xy_m[:-4]
+            np.maximum(deviation, np.abs(d[:, 0] * v[:, 1] - d[:, 1] * v[:, 0]), out=deviation)
+        good |= deviation < max_line_deviation * (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
     # Coincident neighbours have no direction (column by column: (n, 2) sums are slow).
     good &= np.abs(d[:, 0]) + np.abs(d[:, 1]) > 1e-6
     ang[2:-2] = np.arctan2(d[:, 1], d[:, 0]) % math.pi

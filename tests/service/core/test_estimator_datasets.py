@@ -56,7 +56,7 @@ def test_aces_without_odometry_keeps_the_heading_quadrant() -> None:
     """A lost quadrant puts every later loop relation metres and tens of degrees off."""
     trans_m, rot_deg = _aces_relation_errors(use_odometry=False)
     assert rot_deg < 1.0
-    assert trans_m < 0.5
+    assert trans_m < 0.3  # 0.14 m measured (docs/estimator.md); published scan matching 0.173
 
 
 @pytest.mark.slow
