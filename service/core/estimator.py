@@ -225,7 +225,9 @@ class ManhattanEstimator:
             dt = min(max(dt, 0.0), 1.0)
             v = self._velocity
             pred = self._pose.compose(Pose2D(v.x_m * dt, v.y_m * dt, v.theta_rad * dt))
-        turn = self._profile_turn(scan) if p.profile_turn else None
+        # Between frequent scans (40 Hz) the robot cannot turn far: the turn rate will do.
+        fast = self._fast_steady_scans(scan, p.profile_turn_min_period_s)
+        turn = self._profile_turn(scan) if p.profile_turn and not fast else None
         if turn is not None:
             pred = Pose2D(pred.x_m, pred.y_m, wrap_angle(self._pose.theta_rad + turn))
         return pred, PoseFlag.NONE

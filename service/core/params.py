@@ -43,6 +43,7 @@ class EstimatorParams:
     profile_turn: bool = True  # without odometry: the turn predicted from the range profiles
     profile_turn_min_score: float = 0.5  # share of beams that must agree at that turn
     profile_turn_max_deg: float = 90.0  # ± search of that turn (less between frequent scans)
+    profile_turn_min_period_s: float = 0.05  # scans steadily closer than this: not needed
     max_speed_m_s: float = 2.0  # clamp of the constant-velocity model
     max_turn_rate_deg_s: float = 120.0
     max_accel_m_s2: float = 0.5  # bound on the constant-velocity model's change (0: none)
