@@ -620,19 +620,7 @@ class ManhattanEstimator:
         # Cheap trigger: steady motion on a confident Manhattan heading needs no check.
         if heading_ok and turn < math.radians(p.heading_check_min_turn_deg):
             return None
-        free = measure_heading(
-            pts,
-            None,
-            0.0,
-            math.radians(p.heading_step_deg),
-            p.heading_bin_m,
-            score=p.heading_score,
-            coarse_step_rad=math.radians(p.heading_coarse_step_deg),
-            coarse_bin_m=p.heading_coarse_bin_m,
-            refine=p.subbin_refinement,
-            max_range_m=p.heading_max_range_m,
-            same_points=meas,
-        )
+        free = self._free_heading(pts, meas)
         cands: list[tuple[float, bool]] = [(theta, heading_ok)]
         angles = [meas.angle_rad]
         if free.peak_fraction >= p.min_heading_peak_fraction:
@@ -673,19 +661,10 @@ class ManhattanEstimator:
         best = int(better[np.argmax(scores[better])])
         return wrap_angle(uniq[best][0]), uniq[best][1]
 
-    def _reanchor_on_walls(
-        self, pts: FloatArray, meas: HeadingMeasurement, theta: float
-    ) -> float | None:
-        """The paper's absolute heading again, after a relative one drifted from the walls.
-
-        A relative heading (direction histograms, range profiles, the prediction) drifts, and
-        the Manhattan search around it then no longer reaches the walls: each scan is 'without
-        a dominant wall' and the drift stays (Intel: 24° from scan ~420 on). When the paper's
-        prior-free search finds strong walls, the member of their family nearest the current
-        heading is taken (the ±45° rule), if the correction is plausible as drift.
-        """
+    def _free_heading(self, pts: FloatArray, meas: HeadingMeasurement) -> HeadingMeasurement:
+        """The paper's heading search, without a prior, on the points `meas` measured."""
         p = self.params
-        free = measure_heading(
+        return measure_heading(
             pts,
             None,
             0.0,
@@ -698,6 +677,20 @@ class ManhattanEstimator:
             max_range_m=p.heading_max_range_m,
             same_points=meas,
         )
+
+    def _reanchor_on_walls(
+        self, pts: FloatArray, meas: HeadingMeasurement, theta: float
+    ) -> float | None:
+        """The paper's absolute heading again, after a relative one drifted from the walls.
+
+        A relative heading (direction histograms, range profiles, the prediction) drifts, and
+        the Manhattan search around it then no longer reaches the walls: each scan is 'without
+        a dominant wall' and the drift stays (Intel: 24° from scan ~420 on). When the paper's
+        prior-free search finds strong walls, the member of their family nearest the current
+        heading is taken (the ±45° rule), if the correction is plausible as drift.
+        """
+        p = self.params
+        free = self._free_heading(pts, meas)
         if free.peak_fraction < p.wall_reanchor_fraction:
             return None
         anchored = resolve_heading(free.angle_rad, theta)

@@ -24,7 +24,7 @@ _SMOOTH = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)  # σ = 1°
 
 
 def tangent_directions(
-    points_xy_m: FloatArray, max_gap_m: float = 0.3, max_line_deviation: float = 0.05
+    points_xy_m: FloatArray, max_gap_m: float = 0.3, max_line_deviation: float = 0.0
 ) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
     """Surface direction (radians, modulo π) of every point and whether it is reliable.
 
