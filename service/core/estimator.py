@@ -472,37 +472,31 @@ class ManhattanEstimator:
             # The axis with fewer constraining points is the along-corridor one, where a few
             # faces decide and projection aliasing bites (`service.core.gated`).
             gated = (0, 1) if p.translation_gate_both else (int(support[1] < support[0]),)
-        matches: dict[int, AxisMatch] = {}
-        for axis in (0, 1) if len(gated) != 1 else (1 - gated[0],):
-            shifts, energy = correlate_axis(
-                self._density(ref, axis), cur[:, axis], cur_w[:, axis], centre_xy[axis], half_t
-            )
-            matches[axis] = pick_peak(
-                shifts,
-                energy,
+
+        def peak(axis: int, curve: tuple[FloatArray, FloatArray], min_support: float) -> AxisMatch:
+            return pick_peak(
+                *curve,
                 (pred.x_m, pred.y_m)[axis],
                 support[axis],
-                min_support=p.min_axis_support,
+                min_support=min_support,
                 ambiguity_ratio=p.ambiguity_ratio,
                 refine=p.subbin_refinement,
                 prior_sigma_m=prior_sigma_t,
             )
+
+        matches: dict[int, AxisMatch] = {}
+        for axis in (0, 1) if len(gated) != 1 else (1 - gated[0],):
+            curve = correlate_axis(
+                self._density(ref, axis), cur[:, axis], cur_w[:, axis], centre_xy[axis], half_t
+            )
+            matches[axis] = peak(axis, curve, p.min_axis_support)
         # Each gated axis within a band around the other axis' 1-D answer.
         band = {axis: matches[1 - axis].offset_m for axis in gated}
         for axis in gated:
-            shifts, energy = self._gated_correlation(
+            curve = self._gated_correlation(
                 ref, axis, cur, cur_w, band[axis], centre_xy[axis], half_t
             )
-            matches[axis] = pick_peak(
-                shifts,
-                energy,
-                (pred.x_m, pred.y_m)[axis],
-                support[axis],
-                min_support=p.min_axis_support,
-                ambiguity_ratio=p.ambiguity_ratio,
-                refine=p.subbin_refinement,
-                prior_sigma_m=prior_sigma_t,
-            )
+            matches[axis] = peak(axis, curve, p.min_axis_support)
         # An axis the local map leaves ambiguous may still be clear against the previous scan:
         # a crisp reference (the local map is blurred by its keyframes' own errors) and, over one
         # scan, a small motion, so a few points suffice (ACES: a robot stopped in a corridor
@@ -511,23 +505,14 @@ class ManhattanEstimator:
             for axis in (0, 1):
                 if not matches[axis].ambiguous:
                     continue
-                shifts, energy = correlate_axis(
+                curve = correlate_axis(
                     self._last_scan_density(axis),
                     cur[:, axis],
                     cur_w[:, axis],
                     centre_xy[axis],
                     half_t,
                 )
-                fallback = pick_peak(
-                    shifts,
-                    energy,
-                    (pred.x_m, pred.y_m)[axis],
-                    support[axis],
-                    min_support=p.previous_scan_min_support,
-                    ambiguity_ratio=p.ambiguity_ratio,
-                    refine=p.subbin_refinement,
-                    prior_sigma_m=prior_sigma_t,
-                )
+                fallback = peak(axis, curve, p.previous_scan_min_support)
                 if not fallback.ambiguous:
                     matches[axis] = fallback
         mx, my = matches[0], matches[1]
