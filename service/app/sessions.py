@@ -214,8 +214,7 @@ class MappingSession:
         checkpoint = self._load_checkpoint()
         skip = 0
         if checkpoint is not None and checkpoint.records <= upto:
-            self._mapper.restore(checkpoint.mapper_state)
-            skip = checkpoint.records
+            skip = self._restore(checkpoint)
         replayed = 0
         for index, record in enumerate(self._store.records()):
             if index >= upto:
@@ -252,6 +251,18 @@ class MappingSession:
             log.warning("session %s: checkpoint not written: %s", self.id, err)
         self._checkpoint_scans = self.scans_accepted
 
+    def _restore(self, checkpoint: _Checkpoint) -> int:
+        """The mapper from `checkpoint` (lock held): the records it covers, or 0 when its state
+        does not restore (pickled by an older version, say) and everything is replayed."""
+        try:
+            self._mapper.restore(checkpoint.mapper_state)
+        except Exception as err:  # the recording is the truth; a checkpoint only saves time
+            log.warning("session %s: checkpoint does not restore, replaying all: %s", self.id, err)
+            self._mapper.close()
+            self._mapper = self._make_mapper(self.id, self.use_odometry, self.resolution_m)
+            return 0
+        return checkpoint.records
+
     def _load_checkpoint(self) -> _Checkpoint | None:
         """The session's checkpoint if it matches the recording, else None (full replay)."""
         path = self._store.directory / CHECKPOINT_FILE
@@ -283,9 +294,9 @@ class MappingSession:
             checkpoint = self._load_checkpoint()
             skip = 0
             if checkpoint is not None:
-                self._mapper.restore(checkpoint.mapper_state)
-                self.map_revision = checkpoint.map_revision
-                skip = checkpoint.records
+                skip = self._restore(checkpoint)
+                if skip:
+                    self.map_revision = checkpoint.map_revision
             for index, record in enumerate(self._store.records()):
                 self._records += 1
                 kind = record.kind

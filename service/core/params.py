@@ -8,7 +8,7 @@ each step's effect.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Literal
 
 ReferenceMode = Literal["previous", "keyframe", "local_map"]
@@ -95,3 +95,15 @@ class EstimatorParams:
     ambiguity_ratio: float = 0.92  # a second peak this high (relative) means ambiguous
     min_heading_peak_fraction: float = 0.08  # share of points on the major lines
     max_range_used_m: float = 30.0  # the heading/translation ignore points beyond this
+
+    # Pickled by name, not by position (the dataclass default): a checkpoint keeps its values
+    # when a later version adds parameters, which take their defaults.
+    def __getstate__(self) -> dict[str, object]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def __setstate__(self, state: object) -> None:
+        if not isinstance(state, dict):
+            raise TypeError("estimator parameters pickled by position (an older version)")
+        defaults = EstimatorParams()
+        for f in fields(self):
+            object.__setattr__(self, f.name, state.get(f.name, getattr(defaults, f.name)))

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
+import pickle
 import shutil
 import threading
 from pathlib import Path
@@ -127,8 +129,17 @@ def test_restart_from_checkpoint_replays_only_the_tail(
     estimated.clear()
     runtime_factory(crash).close()
     assert estimated == []
+    # A checkpoint whose estimator does not restore (an older version's, say) is replayed past.
+    path = crash / "sessions" / session.id / "checkpoint.pickle"
+    checkpoint = pickle.loads(path.read_bytes())
+    path.write_bytes(pickle.dumps(dataclasses.replace(checkpoint, mapper_state=b"not a state")))
+    third = runtime_factory(crash)
+    assert_same_session(session, third.sessions.get(session.id))
+    assert len(estimated) == 25
+    third.close()
+    estimated.clear()
     # A checkpoint that does not match the recording is ignored, never trusted.
-    (crash / "sessions" / session.id / "checkpoint.pickle").write_bytes(b"not a pickle")
+    path.write_bytes(b"not a pickle")
     assert_same_session(session, runtime_factory(crash).sessions.get(session.id))
     assert len(estimated) == 25
 

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -96,3 +98,17 @@ def test_walls_too_weak_do_not_reanchor() -> None:
     )
     meas = measure_heading(pts, None, 0.0, math.radians(0.1), 0.02)
     assert est._reanchor_on_walls(pts, meas, 0.5) is None
+
+
+def test_parameters_pickled_by_name_take_defaults_for_newer_ones() -> None:
+    """A checkpoint written before a parameter existed resumes with that parameter's default."""
+    params = EstimatorParams(use_odometry=False, min_points=25)
+    assert pickle.loads(pickle.dumps(params)) == params
+    state = params.__getstate__()
+    del state["profile_turn"]  # "added later"
+    older = object.__new__(EstimatorParams)
+    older.__setstate__(state)
+    assert older.profile_turn is EstimatorParams().profile_turn
+    assert older.min_points == 25
+    with pytest.raises(TypeError):  # the dataclass default (by position) is refused
+        older.__setstate__([getattr(params, f.name) for f in dataclasses.fields(params)])
