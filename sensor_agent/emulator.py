@@ -898,7 +898,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def parse_tcp(value: str) -> tuple[str, int]:
     host, _, port = value.rpartition(":")
-    if not port.isdigit() or not 0 <= int(port) <= 65535:
+    if not (port.isascii() and port.isdigit()) or not 0 <= int(port) <= 65535:
         raise ValueError(f"bad TCP address {value!r}: use [HOST:]PORT")
     return host or "127.0.0.1", int(port)
 

@@ -442,7 +442,7 @@ def _parameters(cmd: Command, f: dict[str, str]) -> SensorParameters:
     ints: dict[str, int] = {}
     for key in ("DMIN", "DMAX", "ARES", "AMIN", "AMAX", "AFRT", "SCAN"):
         value = f.get(key)
-        if value is None or not value.strip().isdigit():
+        if value is None or not (value.strip().isascii() and value.strip().isdigit()):
             raise MalformedReplyError(f"PP reply: {key} missing or not a number ({value!r})")
         ints[key] = int(value.strip())
     if ints["ARES"] <= 0 or ints["AMIN"] > ints["AMAX"]:

@@ -125,9 +125,11 @@ def status_error(command_name: str, status: str) -> StatusError:
         cls, meaning = specific[status]
     elif status in _GENERIC:
         cls, meaning = _GENERIC[status]
-    elif status.isdigit() and 21 <= int(status) <= 49:
+    # ASCII digits only: str.isdigit() also accepts '¹' and the like, which int() refuses
+    # (garbage on the line, found by the fuzz test).
+    elif status.isascii() and status.isdigit() and 21 <= int(status) <= 49:
         cls, meaning = HardwareError, "processing stopped to verify the error"
-    elif status.isdigit() and 50 <= int(status) <= 97:
+    elif status.isascii() and status.isdigit() and 50 <= int(status) <= 97:
         cls, meaning = HardwareError, "hardware trouble (laser, motor or scan speed)"
     else:
         cls, meaning = StatusError, "unknown status"

@@ -460,6 +460,17 @@ STATUS_TABLE = [
 ]
 
 
+def test_non_ascii_digit_status_is_an_unknown_status() -> None:
+    """Garbage on the line: '¹' passes str.isdigit() but not int() (found by the fuzz test)."""
+    cmd = c.qt()
+    codec = ScipCodec()
+    codec.send(cmd)
+    [ev] = codec.receive(status_reply(cmd.line, "¹9".encode("latin-1")))
+    assert isinstance(ev, ReplyError)
+    assert type(ev.error) is StatusError
+    assert ev.error.meaning == "unknown status"
+
+
 @pytest.mark.parametrize(("build", "status", "cls"), STATUS_TABLE)
 def test_every_status_path(build: object, status: str, cls: type[StatusError]) -> None:
     cmd = build()  # type: ignore[operator]

@@ -113,7 +113,7 @@ class BodyLimitMiddleware:
             return
         declared = Headers(scope=scope).get("content-length")
         if declared is not None:
-            if not declared.isdigit():
+            if not (declared.isascii() and declared.isdigit()):  # int() refuses '¹'
                 await _reply(scope, receive, send, 400, "invalid Content-Length header")
                 return
             if int(declared) > self.max_bytes:

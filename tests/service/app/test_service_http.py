@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import io
 import json
 from collections.abc import Iterator
@@ -20,7 +21,7 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
     wait_for,
 )
 
-from service.app.api.app import create_app
+from service.app.api.app import BodyLimitMiddleware, create_app
 from service.app.errors import SettingsError
 from service.app.runtime import MappingRuntime
 from service.app.settings import build_settings
@@ -355,3 +356,27 @@ def test_settings_mapper_processes_from_flag_or_environment(tmp_path: Path) -> N
     bad = parser.parse_args(["serve", "--data-dir", str(tmp_path), "--mapper-processes", "-1"])
     with pytest.raises(SettingsError, match="mapper_processes"):
         build_settings(bad, env={})
+
+
+def test_body_limit_refuses_a_non_ascii_digit_content_length() -> None:
+    """'¹' passes str.isdigit() but not int(): a clear 400, not a server error. (h11 refuses
+    such a header before the app sees it; other servers may not, so the ASGI app is called.)"""
+    sent: list[dict[str, object]] = []
+
+    async def app(scope: object, receive: object, send: object) -> None:
+        raise AssertionError("the body limit must answer first")
+
+    async def receive() -> dict[str, object]:
+        return {"type": "http.request", "body": b"", "more_body": False}
+
+    async def send(message: dict[str, object]) -> None:
+        sent.append(message)
+
+    scope = {
+        "type": "http",
+        "method": "POST",
+        "path": "/sessions",
+        "headers": [(b"content-length", "¹".encode("latin-1"))],
+    }
+    asyncio.run(BodyLimitMiddleware(app, 1024)(scope, receive, send))  # type: ignore[arg-type]
+    assert sent[0]["status"] == 400
