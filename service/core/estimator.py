@@ -369,17 +369,10 @@ class ManhattanEstimator:
                 prior_theta = theta_dir
                 sigma = math.radians(p.direction_sigma_deg)
         if meas is None:
-            meas = measure_heading(
+            meas = self._measure_heading(
                 pts,
                 prior_theta if predicted else None,
                 sigma,
-                math.radians(p.heading_step_deg),
-                p.heading_bin_m,
-                score=p.heading_score,
-                coarse_step_rad=math.radians(p.heading_coarse_step_deg),
-                coarse_bin_m=p.heading_coarse_bin_m,
-                refine=p.subbin_refinement,
-                max_range_m=p.heading_max_range_m,
                 coarse_half_rad=(
                     p.heading_coarse_window_sigmas * sigma
                     if p.heading_coarse_window_sigmas > 0.0
@@ -646,13 +639,21 @@ class ManhattanEstimator:
         best = int(better[np.argmax(scores[better])])
         return wrap_angle(uniq[best][0]), uniq[best][1]
 
-    def _free_heading(self, pts: FloatArray, meas: HeadingMeasurement) -> HeadingMeasurement:
-        """The paper's heading search, without a prior, on the points `meas` measured."""
+    def _measure_heading(
+        self,
+        pts: FloatArray,
+        prior_rad: float | None,
+        sigma_rad: float,
+        *,
+        coarse_half_rad: float = QUARTER / 2.0,
+        same_points: HeadingMeasurement | None = None,
+    ) -> HeadingMeasurement:
+        """`heading.measure_heading` with this estimator's search settings."""
         p = self.params
         return measure_heading(
             pts,
-            None,
-            0.0,
+            prior_rad,
+            sigma_rad,
             math.radians(p.heading_step_deg),
             p.heading_bin_m,
             score=p.heading_score,
@@ -660,8 +661,13 @@ class ManhattanEstimator:
             coarse_bin_m=p.heading_coarse_bin_m,
             refine=p.subbin_refinement,
             max_range_m=p.heading_max_range_m,
-            same_points=meas,
+            same_points=same_points,
+            coarse_half_rad=coarse_half_rad,
         )
+
+    def _free_heading(self, pts: FloatArray, meas: HeadingMeasurement) -> HeadingMeasurement:
+        """The paper's heading search, without a prior, on the points `meas` measured."""
+        return self._measure_heading(pts, None, 0.0, same_points=meas)
 
     def _reanchor_on_walls(
         self, pts: FloatArray, meas: HeadingMeasurement, theta: float
