@@ -143,8 +143,9 @@ class ManhattanEstimator:
         # The previous scan (reference "previous", `previous_scan_fallback`) and its densities.
         self._last_scan: _Keyframe | None = None
         self._last_scan_densities: dict[int, AxisDensity] = {}
-        # The previous scan's (angle_min, increment) and ranges, for `profile_turn`.
-        self._last_profile: tuple[tuple[float, float], FloatArray] | None = None
+        # The previous scan's (angle_min, increment), ranges and range limits, for
+        # `profile_turn`; masked only when a turn is measured (not at 40 Hz: speed).
+        self._last_profile: tuple[tuple[float, float], FloatArray, float, float] | None = None
         self._grid: OccupiedCells | None = None
         self._grid_dirty = True
         self._dir_spectrum: npt.NDArray[np.complex128] | None = None
@@ -232,11 +233,10 @@ class ManhattanEstimator:
             pred = Pose2D(pred.x_m, pred.y_m, wrap_angle(self._pose.theta_rad + turn))
         return pred, PoseFlag.NONE
 
-    def _profile_ranges(self, scan: LaserScan) -> FloatArray:
+    def _profile_ranges(self, r: FloatArray, range_min_m: float, range_max_m: float) -> FloatArray:
         """The ranges the estimator uses, NaN elsewhere (for `profile_turn`)."""
-        r = np.asarray(scan.ranges_m, dtype=np.float64)
         with np.errstate(invalid="ignore"):
-            ok = (r >= max(scan.range_min_m, 1e-6)) & (r < scan.range_max_m)
+            ok = (r >= max(range_min_m, 1e-6)) & (r < range_max_m)
             ok &= r <= self.params.max_range_used_m
         return np.where(ok, r, np.nan)
 
@@ -253,7 +253,11 @@ class ManhattanEstimator:
             gap_s = (scan.stamp_ns - self._stamp_ns) * 1e-9
             reach = 2.0 * math.radians(p.max_turn_rate_deg_s) * gap_s
             max_turn = min(max_turn, max(reach, math.radians(2.0)))
-        turn = profile_turn(last[1], self._profile_ranges(scan), scan.angle_increment_rad, max_turn)
+        previous = self._profile_ranges(*last[1:])
+        current = self._profile_ranges(
+            np.asarray(scan.ranges_m, dtype=np.float64), scan.range_min_m, scan.range_max_m
+        )
+        turn = profile_turn(previous, current, scan.angle_increment_rad, max_turn)
         if turn is None or turn.score < p.profile_turn_min_score:
             return None
         return turn.turn_rad
@@ -868,7 +872,8 @@ class ManhattanEstimator:
             self._odom = scan.odom
         if p.profile_turn and p.use_prediction:
             key = (scan.angle_min_rad, scan.angle_increment_rad)
-            self._last_profile = (key, self._profile_ranges(scan))
+            ranges = np.array(scan.ranges_m, dtype=np.float64)  # a copy: the caller's may change
+            self._last_profile = (key, ranges, scan.range_min_m, scan.range_max_m)
         is_kf = False
         if pts is not None and not flags & PoseFlag.DEGENERATE:
             if not self._keyframes:
