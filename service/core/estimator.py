@@ -412,7 +412,8 @@ class ManhattanEstimator:
             theta = pred.theta_rad
             heading_quality = 0.3
         if predicted and p.heading_check and not odom_prior and self._grid_ready():
-            gap_s = (scan.stamp_ns - (self._stamp_ns or scan.stamp_ns)) * 1e-9
+            last_ns = self._stamp_ns if self._stamp_ns is not None else scan.stamp_ns
+            gap_s = (scan.stamp_ns - last_ns) * 1e-9
             checked = self._check_heading(pts, pred, theta, heading_ok, meas, gap_s=gap_s)
             if checked is not None:
                 theta, absolute = checked
