@@ -63,6 +63,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_map.add_argument("--no-odom", action="store_true", help="ignore odometry even if present")
     p_map.add_argument(
+        "--no-loop-closure",
+        action="store_true",
+        help="the front end alone: no loop search, no pose graph (for comparison)",
+    )
+    p_map.add_argument(
         "--resolution", type=float, default=0.05, metavar="M", help="map cell size (default: 0.05)"
     )
     p_map.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -33,10 +33,10 @@ from clients.logs import LogError, LogInfo, iter_log_scans, probe_log
 from clients.wire import PoseFlag, Scan
 from service import mapio
 from service.bridge import scan_to_laser
-from service.core.estimator import ManhattanEstimator
 from service.core.grid import OccupancyGrid
 from service.core.params import EstimatorParams
-from service.core.types import Pose2D, PoseEstimate
+from service.core.slam import LoopStats, SlamParams, SlamSession
+from service.core.types import LaserScan, Pose2D, PoseEstimate
 
 log = logging.getLogger(__name__)
 
@@ -64,10 +64,18 @@ class MapRun:
     wall_s: float = 0.0
     beam_counts: set[int] = field(default_factory=set)
     with_odometry: int = 0  # scans that carried odometry into the estimator
+    optimised: list[Pose2D] | None = None  # every scan's pose after loop closure (None: off)
+    loops: LoopStats | None = None
+    backend_s: float = 0.0  # loop search and optimisation, all of it
+
+    @property
+    def frontend_poses(self) -> list[Pose2D]:
+        return [e.pose for e in self.estimates]
 
     @property
     def poses(self) -> list[Pose2D]:
-        return [e.pose for e in self.estimates]
+        """The final trajectory: optimised when the back end ran, else the front end's."""
+        return self.optimised if self.optimised is not None else self.frontend_poses
 
     @property
     def scans(self) -> int:
@@ -84,19 +92,28 @@ def map_scans(
     total: int | None = None,
     progress: bool = False,
     on_estimate: Callable[[Scan, PoseEstimate], None] | None = None,
+    loop_closure: bool = True,
+    slam_params: SlamParams | None = None,
 ) -> MapRun:
     """Estimate a pose for every scan and build the occupancy grid.
 
     The grid integrates keyframes and every `integrate_every`-th scan (0: keyframes only);
-    degenerate poses are never integrated (their pose is only a prediction).
+    degenerate poses are never integrated (their pose is only a prediction). With
+    `loop_closure`, the back end closes loops over the keyframes and the grid is drawn at the
+    optimised poses once the run is over.
     """
     if params is None:
         params = EstimatorParams(use_odometry=use_odometry)
     elif params.use_odometry != use_odometry:
         params = _replace_params(params, use_odometry=use_odometry)
-    estimator = ManhattanEstimator(params)
+    if slam_params is None:
+        slam_params = SlamParams(loop_closure=loop_closure)
+    elif slam_params.loop_closure != loop_closure:
+        slam_params = SlamParams(**{**_shallow(slam_params), "loop_closure": loop_closure})
+    slam = SlamSession(params, slam_params)
     grid = OccupancyGrid(resolution_m)
     run = MapRun(grid=grid)
+    deferred: list[tuple[int, LaserScan]] = []  # integrated once the poses are final
     since_integrated = 0
     start = time.perf_counter()
     bar = tqdm(
@@ -111,8 +128,9 @@ def map_scans(
         for scan in scans:
             laser = scan_to_laser(scan, use_odometry=use_odometry)
             t0 = time.perf_counter_ns()
-            estimate = estimator.process(laser)
+            estimate = slam.frontend.process(laser)
             run.estimator_ns.append(time.perf_counter_ns() - t0)
+            slam.observe(laser, estimate)
             run.stamps_ns.append(scan.stamp_ns)
             run.estimates.append(estimate)
             run.beam_counts.add(scan.beam_count)
@@ -121,9 +139,12 @@ def map_scans(
             usable = not estimate.flags & PoseFlag.DEGENERATE
             due = integrate_every > 0 and since_integrated >= integrate_every
             if usable and (estimate.is_keyframe or due or run.scans == 1):
-                t1 = time.perf_counter_ns()
-                grid.integrate(laser, estimate.pose)
-                run.integrate_ns.append(time.perf_counter_ns() - t1)
+                if slam_params.loop_closure:
+                    deferred.append((run.scans - 1, laser))
+                else:
+                    t1 = time.perf_counter_ns()
+                    grid.integrate(laser, estimate.pose)
+                    run.integrate_ns.append(time.perf_counter_ns() - t1)
                 since_integrated = 0
             if on_estimate is not None:
                 on_estimate(scan, estimate)
@@ -132,8 +153,20 @@ def map_scans(
                 bar.set_postfix_str(f"q={estimate.quality:.2f}", refresh=False)
     finally:
         bar.close()
+    if slam_params.loop_closure:
+        run.optimised = slam.finish()
+        run.loops = slam.stats
+        for index, laser in deferred:
+            t1 = time.perf_counter_ns()
+            grid.integrate(laser, run.optimised[index])
+            run.integrate_ns.append(time.perf_counter_ns() - t1)
+    run.backend_s = slam.stats.search_s + slam.stats.optimise_s
     run.wall_s = time.perf_counter() - start
     return run
+
+
+def _shallow(params: SlamParams) -> dict[str, Any]:
+    return {f: getattr(params, f) for f in params.__dataclass_fields__}
 
 
 def _replace_params(params: EstimatorParams, **changes: Any) -> EstimatorParams:
@@ -160,6 +193,18 @@ def _flag_counts(estimates: Sequence[PoseEstimate]) -> dict[str, int]:
         n = sum(1 for e in estimates if e.flags & flag)
         counts[flag.name] = n
     return counts
+
+
+def _loop_report(stats: LoopStats | None) -> dict[str, Any] | None:
+    """`report.json`'s `loop_closures`: None when the back end was off."""
+    if stats is None:
+        return None
+    return {
+        "accepted": stats.accepted,
+        "rejected": dict(sorted(stats.rejected.items())),
+        "search_s": round(stats.search_s, 3),
+        "optimise_s": round(stats.optimise_s, 3),
+    }
 
 
 def trajectory_length_m(poses: Sequence[Pose2D]) -> float:
@@ -206,6 +251,8 @@ def build_report(
         ),
         "wall_time_s": round(run.wall_s, 3),
         "scans_per_second": round(run.scans / run.wall_s, 1) if run.wall_s > 0 else None,
+        "backend_s": round(run.backend_s, 3),
+        "loop_closures": _loop_report(run.loops),
     }
     if input_info is not None:
         report["input"] = input_info
@@ -321,6 +368,7 @@ def run_map(args: argparse.Namespace) -> int:
             params=params,
             total=info.scan_count,
             progress=show_progress,
+            loop_closure=not args.no_loop_closure,
         )
     except LogError as err:
         _fail(str(err))
@@ -344,4 +392,11 @@ def run_map(args: argparse.Namespace) -> int:
         f"below 0.5), {report['trajectory_length_m']:.1f} m travelled, "
         f"map {report['map']['width_m']:.1f} x {report['map']['height_m']:.1f} m -> {args.out}\n"
     )
+    loops = report["loop_closures"]
+    if loops is not None:
+        rejected = sum(loops["rejected"].values())
+        sys.stdout.write(
+            f"loop closure: {loops['accepted']} accepted, {rejected} rejected, "
+            f"{report['backend_s']:.1f} s in the back end\n"
+        )
     return EXIT_OK

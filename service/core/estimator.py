@@ -26,6 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from clients.wire import PoseFlag
+from service.core.covariance import CovarianceTracker, axis_sigma_m
 from service.core.gated import SortedReference, correlate_axis_gated
 from service.core.heading import (
     QUARTER,
@@ -154,6 +155,7 @@ class ManhattanEstimator:
         self._ref: _Reference | None = None
         self._heading_measured = False  # the last pose's heading came from its Manhattan walls
         self._beams: tuple[tuple[float, float, int], FloatArray] | None = None
+        self._covariance = CovarianceTracker()  # of the pose relative to the latest keyframe
 
     def __setstate__(self, state: dict[str, object]) -> None:
         # Checkpoints pickled by an older version lack the newer caches: start them empty.
@@ -166,6 +168,7 @@ class ManhattanEstimator:
         self.__dict__.setdefault("_heading_measured", False)
         self.__dict__.setdefault("_last_scan_densities", {})
         self.__dict__.setdefault("_last_profile", None)
+        self.__dict__.setdefault("_covariance", CovarianceTracker())
         for frame in [*self.__dict__.get("_keyframes", ()), self.__dict__.get("_last_scan")]:
             if frame is not None and not hasattr(frame, "direction_counts"):
                 frame.derive()
@@ -530,7 +533,9 @@ class ManhattanEstimator:
             q *= 0.7
         if my.ambiguous:
             q *= 0.7
-        return self._commit(scan, Pose2D(x, y, theta), q, flags, pts, work=work)
+        cov = self._covariance.params
+        sigmas = (axis_sigma_m(mx, cov), axis_sigma_m(my, cov))
+        return self._commit(scan, Pose2D(x, y, theta), q, flags, pts, work=work, sigmas_m=sigmas)
 
     def _gated_correlation(  # noqa: PLR0917 - the correlation's inputs plus the band
         self,
@@ -831,7 +836,9 @@ class ManhattanEstimator:
         pts: FloatArray | None,
         *,
         work: _ScanWork | None = None,
+        sigmas_m: tuple[float | None, float | None] = (None, None),
     ) -> PoseEstimate:
+        """Keep the pose and its motion; `sigmas_m` are the x/y match σ (None: not measured)."""
         p = self.params
         if self._initialised and self._stamp_ns is not None:
             dt = self._dt_s(scan)
@@ -906,6 +913,16 @@ class ManhattanEstimator:
                     self._ref = None
         lost = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
         self._heading_measured = pts is not None and not flags & lost
+        if not self._initialised:
+            covariance = self._covariance.covariance()  # the first pose defines the map frame
+        else:
+            covariance = self._covariance.update(
+                *sigmas_m,
+                heading_anchored=self._heading_measured,
+                degenerate=bool(flags & PoseFlag.DEGENERATE),
+            )
+        if is_kf:
+            self._covariance.restart()
         self._initialised = self._initialised or (
             pts is not None and not flags & PoseFlag.DEGENERATE
         )
@@ -919,4 +936,5 @@ class ManhattanEstimator:
             quality=min(max(float(quality), 0.0), 1.0),
             flags=flags,
             is_keyframe=is_kf,
+            covariance=covariance,
         )

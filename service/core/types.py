@@ -12,6 +12,9 @@ import numpy.typing as npt
 from clients.wire import PoseFlag
 
 FloatArray = npt.NDArray[np.float64]
+# A row-major 3×3 covariance of (x_m, y_m, theta_rad).
+Covariance3 = tuple[float, float, float, float, float, float, float, float, float]
+ZERO_COVARIANCE: Covariance3 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 class Pose2D(NamedTuple):
@@ -93,13 +96,18 @@ class LaserScan:
 
 @dataclass(frozen=True, slots=True)
 class PoseEstimate:
-    """The estimator's answer for one scan: the pose in the map frame and how sure it is."""
+    """The estimator's answer for one scan: the pose in the map frame and how sure it is.
+
+    `covariance` is that of the pose relative to the latest keyframe before it (for a keyframe:
+    the previous one), on the map axes: what the back end weighs a sequential constraint by.
+    """
 
     stamp_ns: int
     pose: Pose2D
     quality: float  # [0, 1]
     flags: PoseFlag = PoseFlag.NONE
     is_keyframe: bool = False
+    covariance: Covariance3 = ZERO_COVARIANCE
 
     @property
     def x_m(self) -> float:

@@ -1,0 +1,190 @@
+"""The pose graph (gtsam): sequential constraints, the Manhattan heading, robust loop closures.
+
+Nodes are the front end's keyframes. Factors:
+- a prior on node 0 (the map frame is the first node's; without it the graph floats);
+- `BetweenFactorPose2` between consecutive nodes, weighted by the front end's covariance;
+- `PoseRotationPrior2D` on every node whose heading the front end anchored on the building's
+  walls: the paper's absolute heading, said in the graph (behind a Huber kernel, since a wrong
+  quadrant is possible);
+- loop closures, `BetweenFactorPose2` behind a robust kernel: one wrong closure must not bend
+  the map (slam_toolbox#167, cartographer_ros#533).
+
+The kernel is Huber in iSAM2 (convex: a true closure with a large first residual still pulls the
+graph into its basin, where a redescending kernel would leave it stuck at "closure ignored"),
+then Cauchy in the final batch pass, started from the Huber estimate: a closure still far off
+there is one the rest of the graph disagrees with, and Cauchy takes its weight away.
+Live, iSAM2 updates as nodes and closures arrive; `optimize_batch` is Levenberg-Marquardt over
+everything.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from service.core.types import FloatArray, Pose2D
+
+_COV_FLOOR = (1e-6, 1e-6, 1e-8)  # keeps a constraint's information matrix finite
+
+
+@dataclass(frozen=True, slots=True)
+class GraphParams:
+    prior_sigma_m: float = 1e-3  # the first node pins the map frame
+    prior_sigma_rad: float = 1e-4
+    heading_huber_k: float = 3.0  # whitened residual where a heading prior stops being L2
+    loop_huber_k: float = 3.0  # whitened residual where a closure stops being L2 (iSAM2)
+    loop_cauchy_k: float = 3.0  # whitened residual scale of the closures' Cauchy kernel (batch)
+    relinearize_threshold: float = 0.01  # iSAM2
+    batch_max_iterations: int = 100  # Levenberg-Marquardt, offline
+
+
+@dataclass(frozen=True, slots=True)
+class Edge:
+    """A constraint between two nodes, for reports and the graph endpoint."""
+
+    from_node: int
+    to_node: int
+    kind: str  # "sequential" or "loop"
+
+
+def _key(node: int) -> int:
+    return int(gtsam.symbol("x", node))
+
+
+def _pose2(p: Pose2D) -> gtsam.Pose2:
+    return gtsam.Pose2(p.x_m, p.y_m, p.theta_rad)
+
+
+def _to_pose(p: gtsam.Pose2) -> Pose2D:
+    return Pose2D(float(p.x()), float(p.y()), float(p.theta()))
+
+
+def rotate_covariance(cov_map: FloatArray, theta_rad: float) -> FloatArray:
+    """A 3×3 (x, y, θ) covariance on the map axes, expressed in a frame at heading θ."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    out: FloatArray = rot @ cov_map @ rot.T
+    out[np.diag_indices(3)] += _COV_FLOOR
+    return out
+
+
+class PoseGraph:
+    """Nodes, factors and the current estimate; pure computation, no IO."""
+
+    def __init__(self, params: GraphParams | None = None) -> None:
+        self.params = params if params is not None else GraphParams()
+        self.graph = gtsam.NonlinearFactorGraph()
+        self.initial = gtsam.Values()  # every node's first guess (for the batch pass)
+        self.edges: list[Edge] = []
+        self.heading_priors = 0
+        self._loops: list[tuple[int, int, gtsam.Pose2, FloatArray]] = []
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(self.params.relinearize_threshold)
+        self._isam = gtsam.ISAM2(isam_params)
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._estimate: gtsam.Values | None = None
+        self._count = 0
+
+    @property
+    def node_count(self) -> int:
+        return self._count
+
+    def _add(self, factor: gtsam.NonlinearFactor, *, in_batch: bool = True) -> None:
+        if in_batch:
+            self.graph.add(factor)
+        self._new_factors.add(factor)
+
+    @staticmethod
+    def _loop_factor(
+        loop: tuple[int, int, gtsam.Pose2, FloatArray], kernel: gtsam.noiseModel.mEstimator.Base
+    ) -> gtsam.BetweenFactorPose2:
+        a, b, relative, cov = loop
+        noise = gtsam.noiseModel.Robust.Create(kernel, gtsam.noiseModel.Gaussian.Covariance(cov))
+        return gtsam.BetweenFactorPose2(_key(a), _key(b), relative, noise)
+
+    def add_node(self, guess: Pose2D) -> int:
+        """A new node at `guess` (map frame); returns its index. Node 0 gets the prior."""
+        node = self._count
+        self._count += 1
+        value = _pose2(guess)
+        self.initial.insert(_key(node), value)
+        self._new_values.insert(_key(node), value)
+        if node == 0:
+            p = self.params
+            sigmas = np.array([p.prior_sigma_m, p.prior_sigma_m, p.prior_sigma_rad])
+            noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
+            self._add(gtsam.PriorFactorPose2(_key(0), value, noise))
+        return node
+
+    def add_sequential(self, a: int, b: int, relative: Pose2D, cov_in_a: FloatArray) -> None:
+        """`relative` = pose of b in a's frame, with its covariance in a's frame."""
+        noise = gtsam.noiseModel.Gaussian.Covariance(cov_in_a)
+        self._add(gtsam.BetweenFactorPose2(_key(a), _key(b), _pose2(relative), noise))
+        self.edges.append(Edge(a, b, "sequential"))
+
+    def add_heading_prior(self, node: int, theta_rad: float, sigma_rad: float) -> None:
+        base = gtsam.noiseModel.Isotropic.Sigma(1, sigma_rad)
+        robust = gtsam.noiseModel.Robust.Create(
+            gtsam.noiseModel.mEstimator.Huber.Create(self.params.heading_huber_k), base
+        )
+        self._add(gtsam.PoseRotationPrior2D(_key(node), gtsam.Pose2(0.0, 0.0, theta_rad), robust))
+        self.heading_priors += 1
+
+    def add_loop(self, a: int, b: int, relative: Pose2D, cov_in_a: FloatArray) -> None:
+        loop = (a, b, _pose2(relative), np.array(cov_in_a, dtype=np.float64))
+        self._loops.append(loop)
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(self.params.loop_huber_k)
+        self._add(self._loop_factor(loop, huber), in_batch=False)
+        self.edges.append(Edge(a, b, "loop"))
+
+    def update(self) -> None:
+        """iSAM2 step with what was added since the last one."""
+        if self._new_factors.size() == 0 and self._new_values.size() == 0:
+            return
+        self._isam.update(self._new_factors, self._new_values)
+        self._new_factors = gtsam.NonlinearFactorGraph()
+        self._new_values = gtsam.Values()
+        self._estimate = None
+
+    def estimate(self, node: int) -> Pose2D:
+        """The current estimate of a node (after `update`; else its first guess)."""
+        if self._estimate is None and self._isam.size() > 0:
+            self._estimate = self._isam.calculateEstimate()
+        values = self._estimate
+        if values is not None and values.exists(_key(node)):
+            return _to_pose(values.atPose2(_key(node)))
+        return _to_pose(self.initial.atPose2(_key(node)))
+
+    def estimates(self) -> list[Pose2D]:
+        return [self.estimate(i) for i in range(self._count)]
+
+    def optimize_batch(self) -> list[Pose2D]:
+        """Levenberg-Marquardt over the whole graph from the iSAM2 estimate; returns all nodes."""
+        if self._count == 0:
+            return []
+        self.update()
+        start = gtsam.Values()
+        for i in range(self._count):
+            start.insert(_key(i), _pose2(self.estimate(i)))
+        graph = gtsam.NonlinearFactorGraph(self.graph)
+        cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(self.params.loop_cauchy_k)
+        for loop in self._loops:
+            graph.add(self._loop_factor(loop, cauchy))
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(self.params.batch_max_iterations)
+        result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm).optimize()
+        self._estimate = result
+        return [_to_pose(result.atPose2(_key(i))) for i in range(self._count)]
+
+    def loop_residuals(self) -> list[float]:
+        """Whitened (Gaussian) residual norm of every closure at the current estimate."""
+        out = []
+        for a, b, relative, cov in self._loops:
+            pa, pb = self.estimate(a), self.estimate(b)
+            err = _pose2(pa).between(_pose2(pb)).localCoordinates(relative)
+            out.append(math.sqrt(float(err @ np.linalg.solve(cov, err))))
+        return out

@@ -1,0 +1,233 @@
+"""Submaps: the scans of a stretch of travel, in the frame of its first node, frozen once full.
+
+A submap holds the scan points of a few consecutive nodes, placed with the front end's relative
+poses (exact within the stretch, since the front end is good locally), in the frame of its
+anchor node. Once it holds `nodes_per_submap` nodes it is finished: its points and its
+likelihood field never change again, only the anchor's pose does when the graph is optimised.
+
+The likelihood field is what the loop search scores a scan against: each cell holds
+exp(-d² / 2σ²), d being the distance to the nearest hit, on a grid of `resolution_m`. Beside it,
+a mask of the space the submap's rays observed: a scan point outside it (beyond the submap's
+reach) is no evidence either way, so it does not count. Counting it as a miss would make every
+corridor closure snap to the placement that overlaps the submap most, which is no placement at
+all (the bias that folded ACES' central corridor by 4 m in the first attempt). It is the
+maximum of Gaussian bumps, which is separable (exp(-(dx²+dy²)) = exp(-dx²)·exp(-dy²)), so it is
+two 1-D maximum filters. A second, coarse field is its sliding maximum over a block of
+`coarse_factor` cells: a score on it bounds every fine score inside that block (branch and bound).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import numpy.typing as npt
+
+from service.core.grid import OccupancyGrid
+from service.core.types import FloatArray, LaserScan, Pose2D
+
+F32Array = npt.NDArray[np.float32]
+
+
+@dataclass(frozen=True, slots=True)
+class SubmapParams:
+    nodes_per_submap: int = 20  # nodes (keyframes) in a finished submap; half of them overlap
+    resolution_m: float = 0.05  # cell of the likelihood field
+    hit_sigma_m: float = 0.07  # width of a hit's Gaussian in the field
+    coarse_factor: int = 4  # coarse field block (cells): 0.2 m at 0.05 m
+    max_points_per_node: int = 400  # a node's scan points kept (voxel-thinned first)
+    voxel_m: float = 0.05  # thinning of the points kept per node
+
+
+@dataclass(frozen=True, slots=True)
+class LikelihoodField:
+    """exp(-d²/2σ²) to the nearest hit, in the submap frame, with a coarse upper-bound copy."""
+
+    origin_m: tuple[float, float]  # (x, y) of cell (0, 0)'s lower corner
+    resolution_m: float
+    fine: F32Array  # (H, W): row = y, column = x
+    coarse: F32Array  # (H, W): max of `fine` over [i, i + k) × [j, j + k)
+    coarse_factor: int
+    known: F32Array  # (H, W): 1 where the submap's rays observed the space, else 0
+
+    def lookup(self, xy_m: FloatArray, coarse: bool = False, known: bool = False) -> F32Array:
+        """Field (or known-mask) values at (..., 2) points; 0 outside the grid."""
+        grid = self.known if known else self.coarse if coarse else self.fine
+        h, w = grid.shape
+        j = np.floor((xy_m[..., 0] - self.origin_m[0]) / self.resolution_m).astype(np.int64)
+        i = np.floor((xy_m[..., 1] - self.origin_m[1]) / self.resolution_m).astype(np.int64)
+        inside = (i >= 0) & (i < h) & (j >= 0) & (j < w)
+        out = np.zeros(i.shape, dtype=np.float32)
+        out[inside] = grid[i[inside], j[inside]]
+        return out
+
+
+def voxel_thin(points_m: FloatArray, voxel_m: float) -> FloatArray:
+    """One point per voxel (the first), order kept."""
+    if points_m.shape[0] == 0:
+        return points_m
+    keys = np.floor(points_m / voxel_m).astype(np.int64)
+    _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
+    out: FloatArray = points_m[np.sort(first)]
+    return out
+
+
+def _max_filter_weighted(grid: F32Array, weights: F32Array, axis: int) -> F32Array:
+    """out[i] = max_k weights[k] · grid[i + k - r] along `axis` (zero padding)."""
+    r = (weights.shape[0] - 1) // 2
+    out: F32Array = grid * weights[r]
+    n = grid.shape[axis]
+    for k in range(1, r + 1):
+        if k >= n:
+            break
+        w = weights[r + k]
+        lo = [slice(None)] * 2
+        hi = [slice(None)] * 2
+        lo[axis], hi[axis] = slice(0, n - k), slice(k, n)
+        np.maximum(out[tuple(lo)], w * grid[tuple(hi)], out=out[tuple(lo)])
+        np.maximum(out[tuple(hi)], w * grid[tuple(lo)], out=out[tuple(hi)])
+    return out
+
+
+def _sliding_max(grid: F32Array, k: int) -> F32Array:
+    """out[i, j] = max of grid[i:i+k, j:j+k] (clipped at the far edges)."""
+    out = grid.copy()
+    for axis in (0, 1):
+        src = out.copy()
+        n = src.shape[axis]
+        for s in range(1, k):
+            if s >= n:
+                break
+            lo = [slice(None)] * 2
+            hi = [slice(None)] * 2
+            lo[axis], hi[axis] = slice(0, n - s), slice(s, n)
+            np.maximum(out[tuple(lo)], src[tuple(hi)], out=out[tuple(lo)])
+    return out
+
+
+def likelihood_field(
+    points_m: FloatArray, params: SubmapParams, observed: OccupancyGrid | None = None
+) -> LikelihoodField:
+    """The field of an (N, 2) point set, N > 0, with a margin of 3σ around it.
+
+    `observed` (same resolution) gives the known mask; without it every cell is known.
+    """
+    res = params.resolution_m
+    radius = max(1, math.ceil(3.0 * params.hit_sigma_m / res))
+    lo = np.floor(points_m.min(axis=0) / res) - radius
+    hi = np.floor(points_m.max(axis=0) / res) + radius + 1
+    dense = None
+    if observed is not None:
+        dense, ci0, cj0 = observed.log_odds()
+        if dense.size:
+            lo = np.minimum(lo, (cj0 - radius, ci0 - radius))
+            hi = np.maximum(hi, (cj0 + dense.shape[1] + radius, ci0 + dense.shape[0] + radius))
+    w, h = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
+    occ = np.zeros((h, w), dtype=np.float32)
+    j = (np.floor(points_m[:, 0] / res) - lo[0]).astype(np.int64)
+    i = (np.floor(points_m[:, 1] / res) - lo[1]).astype(np.int64)
+    occ[i, j] = 1.0
+    d = np.arange(-radius, radius + 1, dtype=np.float32) * np.float32(res)
+    weights = np.exp(-0.5 * (d / np.float32(params.hit_sigma_m)) ** 2).astype(np.float32)
+    fine = _max_filter_weighted(_max_filter_weighted(occ, weights, 0), weights, 1)
+    coarse = _sliding_max(fine, params.coarse_factor)
+    if dense is not None and dense.size:
+        seen = np.zeros((h, w), dtype=np.float32)
+        r0, c0 = int(ci0 - lo[1]), int(cj0 - lo[0])
+        seen[r0 : r0 + dense.shape[0], c0 : c0 + dense.shape[1]] = dense != 0.0
+        np.maximum(seen, occ, out=seen)
+        # A hit just beyond the last observed cell is still a hit: grow the mask by the radius.
+        box = np.ones(2 * radius + 1, dtype=np.float32)
+        known = _max_filter_weighted(_max_filter_weighted(seen, box, 0), box, 1)
+    else:
+        known = np.ones((h, w), dtype=np.float32)
+    origin = (float(lo[0] * res), float(lo[1] * res))
+    return LikelihoodField(origin, res, fine, coarse, params.coarse_factor, known)
+
+
+@dataclass(slots=True)
+class Submap:
+    """Consecutive nodes' scan points in the anchor node's frame."""
+
+    index: int
+    anchor_node: int
+    anchor_pose_frontend: Pose2D  # the anchor's front-end pose (places the points)
+    nodes: list[int] = field(default_factory=list)
+    chunks: list[FloatArray] = field(default_factory=list)
+    likelihood: LikelihoodField | None = None  # set when finished
+    observed: OccupancyGrid | None = None  # ray-cast while active, for the known mask
+    node_xy_m: list[tuple[float, float]] = field(default_factory=list)  # anchor frame
+
+    @property
+    def finished(self) -> bool:
+        return self.likelihood is not None
+
+    def insert(
+        self,
+        node: int,
+        pose_frontend: Pose2D,
+        points_laser_m: FloatArray,
+        scan: LaserScan | None = None,
+        resolution_m: float = 0.05,
+    ) -> None:
+        """Add a node's points (laser frame) at its front-end pose; its rays, if `scan`."""
+        rel = self.anchor_pose_frontend.between(pose_frontend)
+        if scan is not None:
+            if self.observed is None:
+                self.observed = OccupancyGrid(resolution_m)
+            self.observed.integrate(scan, rel)
+        c, s = math.cos(rel.theta_rad), math.sin(rel.theta_rad)
+        pts = points_laser_m @ np.array([[c, s], [-s, c]]) + (rel.x_m, rel.y_m)
+        self.nodes.append(node)
+        self.chunks.append(pts)
+        self.node_xy_m.append((rel.x_m, rel.y_m))
+
+    def finish(self, params: SubmapParams) -> None:
+        pts = np.concatenate(self.chunks) if self.chunks else np.zeros((0, 2))
+        if pts.shape[0] == 0:
+            pts = np.zeros((1, 2))
+        pts = voxel_thin(pts, params.resolution_m)
+        self.likelihood = likelihood_field(pts, params, self.observed)
+        self.observed = None  # the mask is all the loop search needs of it
+        self.chunks = [pts]  # thinned: what the map composition and checks need
+
+
+class SubmapBuilder:
+    """Overlapping submaps: every node goes into the two submaps active at its index."""
+
+    def __init__(self, params: SubmapParams | None = None) -> None:
+        self.params = params if params is not None else SubmapParams()
+        self.submaps: list[Submap] = []
+        self._active: list[Submap] = []
+        self._half = max(1, self.params.nodes_per_submap // 2)
+
+    def node_points(self, points_laser_m: FloatArray) -> FloatArray:
+        """What a node keeps of its scan: voxel-thinned, at most `max_points_per_node`."""
+        pts = voxel_thin(points_laser_m, self.params.voxel_m)
+        n = self.params.max_points_per_node
+        if pts.shape[0] > n:
+            pts = pts[np.linspace(0, pts.shape[0] - 1, n).astype(np.int64)]
+        return pts
+
+    def add_node(
+        self,
+        node: int,
+        pose_frontend: Pose2D,
+        points_laser_m: FloatArray,
+        scan: LaserScan | None = None,
+    ) -> list[Submap]:
+        """Insert a node (and its rays, if `scan`); returns the submaps it finished."""
+        if node % self._half == 0:
+            sub = Submap(len(self.submaps), node, pose_frontend)
+            self.submaps.append(sub)
+            self._active.append(sub)
+        finished = []
+        for sub in self._active:
+            sub.insert(node, pose_frontend, points_laser_m, scan, self.params.resolution_m)
+        for sub in list(self._active):
+            if len(sub.nodes) >= self.params.nodes_per_submap:
+                sub.finish(self.params)
+                self._active.remove(sub)
+                finished.append(sub)
+        return finished

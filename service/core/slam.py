@@ -1,0 +1,203 @@
+"""One session's SLAM: the front end tracks every scan, the back end closes loops over nodes.
+
+    scan ─▶ front end (ManhattanEstimator) ─▶ pose + covariance, published at once
+                 │ keyframe
+                 ▼
+            node ─▶ submaps (frozen local point fields)
+                 │                └──────▶ loop search (every few nodes, older submaps)
+                 ▼                                   │ verified closure
+            pose graph (gtsam iSAM2) ◀────────────────┘
+                 │
+                 ▼ optimised nodes ─▶ every scan corrected by its latest node's correction
+
+`SlamSession.process` never waits for anything but its own scan's front end and, on a keyframe,
+one bounded loop search. `finish` runs the final batch optimisation.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from clients.wire import PoseFlag
+from service.core.backend.graph import GraphParams, PoseGraph, rotate_covariance
+from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
+from service.core.estimator import ManhattanEstimator
+from service.core.maps.submaps import SubmapBuilder, SubmapParams
+from service.core.params import EstimatorParams
+from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate
+
+_NOT_ANCHORED = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
+
+
+@dataclass(frozen=True, slots=True)
+class SlamParams:
+    loop_closure: bool = True  # False: the front end alone (today's tracker)
+    heading_priors: bool = True  # the walls' absolute heading as a unary factor per node
+    heading_prior_sigma_deg: float = 0.3  # its σ (the front end's anchored heading)
+    max_query_range_m: float = 30.0  # a node's points beyond this are not kept
+    graph: GraphParams = field(default_factory=GraphParams)
+    submaps: SubmapParams = field(default_factory=SubmapParams)
+    loops: LoopParams = field(default_factory=LoopParams)
+
+
+@dataclass(slots=True)
+class LoopStats:
+    accepted: int = 0
+    rejected: Counter[str] = field(default_factory=Counter)
+    search_s: float = 0.0
+    optimise_s: float = 0.0
+    closures: list[LoopResult] = field(default_factory=list)  # the accepted ones
+
+
+class SlamSession:
+    """Front end plus back end for one robot's session (pure computation, no IO)."""
+
+    def __init__(
+        self, estimator_params: EstimatorParams | None = None, params: SlamParams | None = None
+    ) -> None:
+        self.params = params if params is not None else SlamParams()
+        self.frontend = ManhattanEstimator(estimator_params)
+        self.graph = PoseGraph(self.params.graph)
+        self.submaps = SubmapBuilder(self.params.submaps)
+        self.stats = LoopStats()
+        self.node_frontend: list[Pose2D] = []  # each node's front-end pose
+        self.node_points: list[FloatArray] = []  # each node's kept scan points, laser frame
+        self._chain_xy: list[FloatArray] = []  # prefix sums of sequential xy covariances (map)
+        self._last_closure_node = -1
+        self._scan_node: list[int] = []  # per scan: its latest node (-1: none yet)
+        self._scan_frontend: list[Pose2D] = []
+        self._optimised: list[Pose2D] | None = None
+
+    # ------------------------------------------------------------------ per scan
+    def process(self, scan: LaserScan) -> PoseEstimate:
+        """The front end's estimate for `scan`; a keyframe also becomes a graph node."""
+        estimate = self.frontend.process(scan)
+        self.observe(scan, estimate)
+        return estimate
+
+    def observe(self, scan: LaserScan, estimate: PoseEstimate) -> None:
+        """The back end's half of `process`, for callers that time the front end alone."""
+        if self.params.loop_closure and estimate.is_keyframe:
+            self._add_node(scan, estimate)
+        self._scan_node.append(len(self.node_frontend) - 1)
+        self._scan_frontend.append(estimate.pose)
+
+    def _add_node(self, scan: LaserScan, estimate: PoseEstimate) -> None:
+        pose = estimate.pose
+        cov_map = np.asarray(estimate.covariance, dtype=np.float64).reshape(3, 3)
+        if self.node_frontend:
+            prev = self.node_frontend[-1]
+            guess = self.graph.estimate(len(self.node_frontend) - 1).compose(prev.between(pose))
+        else:
+            guess = pose
+        node = self.graph.add_node(guess)
+        if node > 0:
+            prev = self.node_frontend[-1]
+            self.graph.add_sequential(
+                node - 1, node, prev.between(pose), rotate_covariance(cov_map, prev.theta_rad)
+            )
+            self._chain_xy.append(self._chain_xy[-1] + cov_map[:2, :2])
+        else:
+            self._chain_xy.append(np.zeros((2, 2)))
+        if self.params.heading_priors and not estimate.flags & _NOT_ANCHORED:
+            self.graph.add_heading_prior(
+                node, pose.theta_rad, math.radians(self.params.heading_prior_sigma_deg)
+            )
+        pts = scan.points_xy_m()
+        pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= self.params.max_query_range_m]
+        kept = self.submaps.node_points(pts)
+        self.node_frontend.append(pose)
+        self.node_points.append(kept)
+        self.submaps.add_node(node, pose, kept, scan)
+        t0 = time.perf_counter()
+        self.graph.update()
+        self.stats.optimise_s += time.perf_counter() - t0
+        if node % self.params.loops.search_every_nodes == 0:
+            t0 = time.perf_counter()
+            self._search(node)
+            self.stats.search_s += time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ loop search
+    def _chain_cov(self, a: int, b: int) -> FloatArray:
+        """Uncertainty of b relative to a (map axes): the chain, or since the latest closure."""
+        full = self._chain_xy[b] - self._chain_xy[a]
+        c = self._last_closure_node
+        if a < c < b:
+            since = self._chain_xy[b] - self._chain_xy[c] + np.eye(2) * 0.1**2
+            if np.trace(since) < np.trace(full):
+                return since
+        return full
+
+    def _search(self, query: int) -> None:
+        p = self.params.loops
+        points = self.node_points[query]
+        est_q = self.graph.estimate(query)
+        candidates: list[tuple[float, int, FloatArray]] = []
+        for sub in self.submaps.submaps:
+            if not sub.finished or sub.nodes[-1] > query - p.min_node_gap:
+                continue
+            # Nearness to where the robot was, not to what it saw (walls 30 m away).
+            q_in_a = self.graph.estimate(sub.anchor_node).between(est_q)
+            xy = np.asarray(sub.node_xy_m)
+            dist = float(np.min(np.hypot(xy[:, 0] - q_in_a.x_m, xy[:, 1] - q_in_a.y_m)))
+            cov = self._chain_cov(sub.anchor_node, query)
+            if dist <= p.base_radius_m + window_m(cov, p):
+                candidates.append((dist, sub.index, cov))
+        candidates.sort(key=lambda c: c[0])
+        for _, index, cov_map in candidates[: p.max_candidates]:
+            sub = self.submaps.submaps[index]
+            est_a = self.graph.estimate(sub.anchor_node)
+            guess = est_a.between(est_q)
+            cov_a = rotate_covariance(
+                np.block([[cov_map, np.zeros((2, 1))], [np.zeros((1, 2)), np.ones((1, 1))]]),
+                est_a.theta_rad,
+            )[:2, :2]
+            result = verify(sub, query, points, guess, cov_a, p)
+            if not result.accepted:
+                self.stats.rejected[result.reason] += 1
+                continue
+            assert result.relative is not None
+            assert result.cov_xy is not None
+            cov = np.zeros((3, 3))
+            cov[:2, :2] = result.cov_xy  # in the anchor's frame, as the factor wants
+            cov[2, 2] = math.radians(p.match_sigma_deg) ** 2
+            self.graph.add_loop(sub.anchor_node, query, result.relative, cov)
+            self.stats.accepted += 1
+            self.stats.closures.append(result)
+            self._last_closure_node = query
+            t0 = time.perf_counter()
+            self.graph.update()
+            self.stats.optimise_s += time.perf_counter() - t0
+            break  # one closure per query: the next query sees the corrected graph
+
+    # ------------------------------------------------------------------ results
+    def finish(self) -> list[Pose2D]:
+        """Final batch optimisation; returns the corrected pose of every scan processed."""
+        if self.params.loop_closure and self.node_frontend:
+            t0 = time.perf_counter()
+            self._optimised = self.graph.optimize_batch()
+            self.stats.optimise_s += time.perf_counter() - t0
+        return self.corrected_poses()
+
+    def node_poses(self) -> list[Pose2D]:
+        if self._optimised is not None:
+            return list(self._optimised)
+        return self.graph.estimates()
+
+    def corrected_poses(self) -> list[Pose2D]:
+        """Every scan's front-end pose moved by its latest node's correction."""
+        if not self.node_frontend:
+            return list(self._scan_frontend)
+        nodes = self.node_poses()
+        corrections = [
+            opt.compose(fe.inverse()) for opt, fe in zip(nodes, self.node_frontend, strict=True)
+        ]
+        out = []
+        for node, pose in zip(self._scan_node, self._scan_frontend, strict=True):
+            out.append(pose if node < 0 else corrections[node].compose(pose))
+        return out
