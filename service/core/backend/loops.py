@@ -94,9 +94,10 @@ def _scores(  # noqa: PLR0917 - the field, the points and the shifts to score th
 ) -> FloatArray:
     """(len(ys), len(xs)) scores of `pts` shifted by every (x, y).
 
-    Fine: the mean field value over the points in observed space (0 where fewer than
-    `min_known` of them are). Coarse: the sum of the coarse field over `min_known` × N, a bound
-    of every fine score in the block.
+    Fine: the mean over the points of the field where the submap observed the space, and of
+    the field's prior (`unknown_value`) where it did not; 0 where fewer than `min_known` of the
+    points are in observed space. Coarse: the same mean on the coarse field (which is at least
+    the prior everywhere), a bound of every fine score in the block.
     """
     grid = field.coarse if coarse else field.fine
     h, w = grid.shape
@@ -110,14 +111,16 @@ def _scores(  # noqa: PLR0917 - the field, the points and the shifts to score th
     cols = np.clip(cols, 0, w - 1)
     rows = np.clip(rows, 0, h - 1)
     inside = row_ok[:, None, :] & col_ok[None, :, :]
-    vals = grid[rows[:, None, :], cols[None, :, :]] * inside  # (ny, nx, n)
-    total = vals.sum(axis=2, dtype=np.float64)
-    floor = max(min_known * n, 1.0)
+    u = field.unknown_value
     if coarse:
-        out: FloatArray = np.minimum(total / floor, 1.0)
+        vals = np.where(inside, grid[rows[:, None, :], cols[None, :, :]], u)
+        out: FloatArray = vals.sum(axis=2, dtype=np.float64) / n
         return out
-    known = (field.known[rows[:, None, :], cols[None, :, :]] * inside).sum(axis=2, dtype=np.float64)
-    return np.where(known >= floor, total / np.maximum(known, 1.0), 0.0)
+    known = field.known[rows[:, None, :], cols[None, :, :]] * inside  # (ny, nx, n)
+    total = (grid[rows[:, None, :], cols[None, :, :]] * known).sum(axis=2, dtype=np.float64)
+    n_known = known.sum(axis=2, dtype=np.float64)
+    score = (total + u * (n - n_known)) / n
+    return np.where(n_known >= min_known * n, score, 0.0)
 
 
 def place_scan(
@@ -170,33 +173,36 @@ def place_scan(
         default=0.0,
     )
     half_m = min(half_window_m, params.response_max_half_m)
-    mean_xy, cov_xy = _response(field, pts, pose, best_score, half_m, params)
-    # The score-weighted mean, not the argmax: the peak's centre, not its noisiest cell.
-    placed = Pose2D(pose.x_m + mean_xy[0], pose.y_m + mean_xy[1], pose.theta_rad)
-    return Placement(placed, best_score, rival, cov_xy)
+    return Placement(
+        pose, best_score, rival, _response_cov(field, pts, pose, best_score, half_m, params)
+    )
 
 
-def _response(  # noqa: PLR0917 - a placement and the window to spread it over
+def _response_cov(  # noqa: PLR0917 - a placement and the window to spread it over
     field: LikelihoodField,
     pts: FloatArray,
     pose: Pose2D,
     best: float,
     half_m: float,
     params: LoopParams,
-) -> tuple[tuple[float, float], FloatArray]:
-    """Mean offset and covariance of the placement from the score's spread (Olson 2009)."""
+) -> FloatArray:
+    """The placement's covariance from the score's spread around it (Olson 2009).
+
+    The second moment about the peak, not about the mean: an elongated peak (a corridor that
+    pins one axis well) reads as uncertain along it, and the peak itself stays the measurement
+    (a mean slides along such a peak: it cost 0.1 m on a synthetic loop).
+    """
     n = params.response_cells
     d = np.linspace(-half_m, half_m, 2 * n + 1)
     scores = _scores(field, pts, pose.x_m + d, pose.y_m + d, False, params.min_known_fraction)
     weights = np.exp((scores - max(best, float(scores.max()))) / params.response_temperature)
     weights /= weights.sum()
     gx, gy = np.meshgrid(d, d)  # scores[iy, ix]: row = y
-    mx, my = float((weights * gx).sum()), float((weights * gy).sum())
-    cxx = float((weights * (gx - mx) ** 2).sum())
-    cyy = float((weights * (gy - my) ** 2).sum())
-    cxy = float((weights * (gx - mx) * (gy - my)).sum())
+    cxx = float((weights * gx**2).sum())
+    cyy = float((weights * gy**2).sum())
+    cxy = float((weights * gx * gy).sum())
     floor = params.match_sigma_floor_m**2
-    return (mx, my), np.array([[cxx + floor, cxy], [cxy, cyy + floor]])
+    return np.array([[cxx + floor, cxy], [cxy, cyy + floor]])
 
 
 def window_m(chain_cov_xy: FloatArray, params: LoopParams) -> float:

@@ -1,0 +1,215 @@
+"""The back end on known answers: the robust graph, the loop search and its checks, submaps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sensor_agent.sim.world import LaserModel, World, simulate_scan
+from service.core.backend.graph import GraphParams, PoseGraph
+from service.core.backend.loops import LoopParams, verify
+from service.core.maps.submaps import SubmapBuilder, SubmapParams
+from service.core.types import LaserScan, Pose2D
+
+pytestmark = pytest.mark.timeout(120)
+
+MODEL = LaserModel.utm30lx()
+
+
+def _world(segments: list[list[float]], width_m: float, height_m: float) -> World:
+    return World(
+        seed=0,
+        size="test",
+        width_m=width_m,
+        height_m=height_m,
+        corridor_width_m=2.0,
+        segments_m=np.array(segments, dtype=np.float64),
+        loop_xy_m=np.zeros((0, 2)),
+        free_raster=np.ones((1, 1), dtype=bool),
+    )
+
+
+def _room(x0: float) -> list[list[float]]:
+    """An 8 x 6 m closed room at x0 with an off-centre box and a wall stub: no symmetry."""
+    walls = [
+        [x0, 0, x0 + 8, 0],
+        [x0 + 8, 0, x0 + 8, 6],
+        [x0 + 8, 6, x0, 6],
+        [x0, 6, x0, 0],
+        [x0 + 5, 4, x0 + 5.6, 4],  # box
+        [x0 + 5.6, 4, x0 + 5.6, 4.8],
+        [x0 + 5.6, 4.8, x0 + 5, 4.8],
+        [x0 + 5, 4.8, x0 + 5, 4],
+        [x0 + 2, 0, x0 + 2, 1.5],  # stub
+    ]
+    return walls
+
+
+def _scan(world: World, pose: Pose2D, rng: np.random.Generator) -> LaserScan:
+    sample = simulate_scan(world, pose, MODEL, rng)
+    return LaserScan(
+        0, MODEL.angle_min_rad, MODEL.angle_increment_rad, sample.ranges_m,
+        MODEL.range_min_m, MODEL.range_max_m,
+    )  # fmt: skip
+
+
+def _submap(world: World, poses: list[Pose2D], rng: np.random.Generator) -> SubmapBuilder:
+    builder = SubmapBuilder(SubmapParams(nodes_per_submap=len(poses)))
+    for node, pose in enumerate(poses):
+        scan = _scan(world, pose, rng)
+        builder.add_node(node, pose, builder.node_points(scan.points_xy_m()), scan)
+    assert builder.submaps[0].finished
+    return builder
+
+
+def _anchor_poses() -> list[Pose2D]:
+    return [Pose2D(1.0 + 0.3 * k, 2.5 + 0.05 * k, 0.02 * k) for k in range(10)]
+
+
+def test_loop_search_finds_a_known_offset() -> None:
+    rng = np.random.default_rng(3)
+    world = _world(_room(0.0), 8.0, 6.0)
+    builder = _submap(world, _anchor_poses(), rng)
+    sub = builder.submaps[0]
+    truth = Pose2D(6.4, 1.2, math.radians(91.0))  # the query, in the world = anchor frame here
+    anchor = _anchor_poses()[0]
+    true_rel = anchor.between(truth)
+    points = builder.node_points(_scan(world, truth, rng).points_xy_m())
+    guess = Pose2D(true_rel.x_m + 0.35, true_rel.y_m - 0.25, true_rel.theta_rad + math.radians(0.3))
+    result = verify(sub, 99, points, guess, np.eye(2) * 0.3**2, LoopParams())
+    assert result.accepted, result
+    assert result.relative is not None
+    assert math.hypot(result.relative.x_m - true_rel.x_m, result.relative.y_m - true_rel.y_m) < 0.02
+    assert abs(result.relative.theta_rad - true_rel.theta_rad) < math.radians(0.35)
+    assert result.cov_xy is not None
+    assert np.sqrt(np.linalg.eigvalsh(result.cov_xy)).max() < 0.1
+
+
+def test_a_twin_room_would_match_without_the_checks_and_is_refused_with_them() -> None:
+    """Two identical rooms 12 m apart: a scan in the second matches the first perfectly."""
+    rng = np.random.default_rng(5)
+    world = _world(_room(0.0) + _room(12.0), 20.0, 6.0)
+    builder = _submap(world, _anchor_poses(), rng)
+    sub = builder.submaps[0]
+    anchor = _anchor_poses()[0]
+    truth = Pose2D(12.0 + 3.1, 2.6, 0.05)  # in the second room
+    true_rel = anchor.between(truth)
+    points = builder.node_points(_scan(world, truth, rng).points_xy_m())
+    guess = Pose2D(true_rel.x_m - 0.2, true_rel.y_m + 0.1, true_rel.theta_rad)  # a good graph
+    chain_cov = np.eye(2) * 0.15**2
+
+    unchecked = LoopParams(
+        window_min_m=14.0, window_max_m=14.0, ambiguity_separation_m=100.0, chi2_gate=math.inf
+    )
+    wrong = verify(sub, 99, points, guess, chain_cov, unchecked)
+    assert wrong.accepted
+    assert wrong.relative is not None
+    # The twin: 12 m from the truth, the same place in the other room.
+    assert abs(wrong.relative.x_m - (true_rel.x_m - 12.0 * math.cos(anchor.theta_rad))) < 0.3
+    assert math.hypot(wrong.relative.x_m - true_rel.x_m, wrong.relative.y_m - true_rel.y_m) > 11.0
+
+    checked = verify(sub, 99, points, guess, chain_cov, LoopParams())
+    assert not checked.accepted
+    assert checked.reason in {"low_score", "inconsistent", "ambiguous"}
+
+
+def test_a_periodic_corridor_is_ambiguous() -> None:
+    """Identical door niches every 2 m: placements 2 m apart score alike; no closure."""
+    walls = [[0.0, 0.0, 40.0, 0.0], [0.0, 2.4, 40.0, 2.4], [0.0, 0.0, 0.0, 2.4]]
+    for k in range(4, 19):
+        x = 2.0 * k
+        walls += [[x, 2.4, x, 3.0], [x, 3.0, x + 0.9, 3.0], [x + 0.9, 3.0, x + 0.9, 2.4]]
+    world = _world(walls, 40.0, 3.0)
+    rng = np.random.default_rng(7)
+    poses = [Pose2D(16.0 + 0.3 * k, 1.2, 0.0) for k in range(10)]
+    builder = SubmapBuilder(SubmapParams(nodes_per_submap=10))
+    model = MODEL.with_(range_max_m=6.0)  # short reach: the corridor's ends are never seen
+    for node, pose in enumerate(poses):
+        sample = simulate_scan(world, pose, model, rng)
+        scan = LaserScan(
+            0, model.angle_min_rad, model.angle_increment_rad, sample.ranges_m,
+            model.range_min_m, model.range_max_m,
+        )  # fmt: skip
+        builder.add_node(node, pose, builder.node_points(scan.points_xy_m()), scan)
+    sub = builder.submaps[0]
+    truth = Pose2D(18.1, 1.1, 0.0)
+    sample = simulate_scan(world, truth, model, rng)
+    query = LaserScan(
+        0, model.angle_min_rad, model.angle_increment_rad, sample.ranges_m,
+        model.range_min_m, model.range_max_m,
+    )  # fmt: skip
+    rel = poses[0].between(truth)
+    result = verify(
+        sub, 99, builder.node_points(query.points_xy_m()), rel, np.eye(2) * 1.5**2, LoopParams()
+    )
+    assert not result.accepted
+    assert result.reason == "ambiguous"
+
+
+def _square_chain(drift_per_step_m: float) -> tuple[list[Pose2D], list[Pose2D]]:
+    """A 10 x 10 m square loop driven twice, every 0.5 m: truth, and a chain that drifts east."""
+    truth: list[Pose2D] = []
+    corners = [(0.0, 0.0), (10.0, 0.0), (10.0, 10.0), (0.0, 10.0)]
+    for _lap in range(2):
+        for side, (x0, y0) in enumerate(corners):
+            theta = side * math.pi / 2
+            for k in range(20):
+                s = 0.5 * k
+                truth.append(Pose2D(x0 + s * math.cos(theta), y0 + s * math.sin(theta), theta))
+    drifted = [
+        Pose2D(p.x_m + drift_per_step_m * i, p.y_m, p.theta_rad) for i, p in enumerate(truth)
+    ]
+    return truth, drifted
+
+
+def _solve(
+    truth: list[Pose2D],
+    drifted: list[Pose2D],
+    closures: list[tuple[int, int, Pose2D]],
+    params: GraphParams | None = None,
+) -> list[Pose2D]:
+    graph = PoseGraph(params)
+    for i, pose in enumerate(drifted):
+        graph.add_node(pose)
+        if i:
+            rel = drifted[i - 1].between(pose)
+            graph.add_sequential(i - 1, i, rel, np.diag([0.02**2, 0.02**2, math.radians(0.5) ** 2]))
+        graph.add_heading_prior(i, truth[i].theta_rad, math.radians(0.3))
+    for a, b, rel in closures:
+        graph.add_loop(a, b, rel, np.diag([0.03**2, 0.03**2, math.radians(0.3) ** 2]))
+    graph.update()
+    return graph.optimize_batch()
+
+
+def _max_distance(a: list[Pose2D], b: list[Pose2D]) -> float:
+    return max(math.hypot(p.x_m - q.x_m, p.y_m - q.y_m) for p, q in zip(a, b, strict=True))
+
+
+def _disagreement(poses: list[Pose2D], truth: list[Pose2D], pairs: list[tuple[int, int]]) -> float:
+    """Largest error of the map where it visits one place twice (metres)."""
+    worst = 0.0
+    for a, b in pairs:
+        est, true = poses[a].between(poses[b]), truth[a].between(truth[b])
+        worst = max(worst, math.hypot(est.x_m - true.x_m, est.y_m - true.y_m))
+    return worst
+
+
+def test_closures_remove_drift_and_a_wrong_one_is_kept_out() -> None:
+    truth, drifted = _square_chain(0.01)
+    lap = 80
+    pairs = [(i, i + lap) for i in range(0, lap, 10)]
+    closures = [(a, b, truth[a].between(truth[b])) for a, b in pairs]
+    corrected = _solve(truth, drifted, closures)
+    assert _disagreement(drifted, truth, pairs) > 0.7  # the drift doubles the map ...
+    assert _disagreement(corrected, truth, pairs) < 0.05  # ... and the closures take it out
+
+    wrong = (15, 120, Pose2D(3.0, -2.0, 0.0))  # a false closure between unrelated places
+    with_wrong = _solve(truth, drifted, [*closures, wrong])
+    assert _max_distance(with_wrong, corrected) < 0.05
+
+    # Without the robust kernels, the same wrong closure bends the map: the test can fail.
+    plain = GraphParams(loop_huber_k=1e9, loop_cauchy_k=1e9)
+    bent = _solve(truth, drifted, [*closures, wrong], plain)
+    assert _max_distance(bent, corrected) > 0.2
