@@ -33,7 +33,7 @@ def _world(segments: list[list[float]], width_m: float, height_m: float) -> Worl
 
 def _room(x0: float) -> list[list[float]]:
     """An 8 x 6 m closed room at x0 with an off-centre box and a wall stub: no symmetry."""
-    walls = [
+    return [
         [x0, 0, x0 + 8, 0],
         [x0 + 8, 0, x0 + 8, 6],
         [x0 + 8, 6, x0, 6],
@@ -44,7 +44,6 @@ def _room(x0: float) -> list[list[float]]:
         [x0 + 5, 4.8, x0 + 5, 4],
         [x0 + 2, 0, x0 + 2, 1.5],  # stub
     ]
-    return walls
 
 
 def _scan(world: World, pose: Pose2D, rng: np.random.Generator) -> LaserScan:
