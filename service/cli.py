@@ -101,6 +101,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="run the estimators in K worker processes, to use K cores with many robots "
         "(or env MAPPING_MAPPER_PROCESSES; default: 0, in the service's process)",
     )
+    p_serve.add_argument(
+        "--foxglove-port",
+        type=int,
+        default=0,
+        metavar="PORT",
+        help="serve the Foxglove WebSocket live view on the HTTP host at PORT "
+        "(e.g. 8765; default 0: off; same loopback/token rule as HTTP)",
+    )
     _add_zenoh_args(p_serve)
     p_serve.set_defaults(handler="service.app.main:run_serve")
 
@@ -114,7 +122,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_demo.add_argument("--http-host", default="127.0.0.1", help="default: %(default)s")
     p_demo.add_argument("--http-port", type=int, default=8000, help="default: %(default)s")
-    p_demo.add_argument("--data-dir", default=None, help="state directory (default: a temp dir)")
+    p_demo.add_argument(
+        "--data-dir",
+        default=None,
+        help="state directory, kept after the demo (default: "
+        "$XDG_DATA_HOME/manhattan-mapper/demo, i.e. ~/.local/share/manhattan-mapper/demo)",
+    )
+    p_demo.add_argument(
+        "--foxglove-port",
+        type=int,
+        default=8765,
+        metavar="PORT",
+        help="Foxglove WebSocket live view port (default: %(default)s; 0: off)",
+    )
     p_demo.add_argument("--world-seed", type=int, default=1, help="simulated building (default: 1)")
     p_demo.add_argument("--robots", type=int, default=1, help="number of simulated robots")
     p_demo.add_argument(
