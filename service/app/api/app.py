@@ -18,7 +18,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 import service
-from service.app.api import routes_maps, routes_sessions, routes_system
+from service.app.api import routes_export, routes_maps, routes_sessions, routes_system
 from service.app.errors import ServiceError, StoreError
 from service.app.runtime import MappingRuntime
 
@@ -84,6 +84,7 @@ def create_app(runtime: MappingRuntime) -> FastAPI:
         )
 
     app.include_router(routes_sessions.router)
+    app.include_router(routes_export.router)
     app.include_router(routes_maps.router)
     app.include_router(routes_system.router)
 
