@@ -68,10 +68,10 @@ SCAN_PERIOD_S = 0.1  # scans decimated to at most 10 Hz
 TICK_S = 0.05
 MAX_TRAJECTORY_POINTS = 5000  # a line strip of an hour at 40 Hz, decimated
 MAX_POSES_PER_TICK = 64  # poses buffered per robot between ticks (oldest dropped)
-# The web page's and map.png's trajectory colour (service/mapio.py TRAJECTORY_RGB), and a
+# map.png's and the web page's trajectory colour (service/mapio.py _TRAJECTORY_RGB), and a
 # distinct one for loop closures.
-TRAJECTORY_RGBA = (0.0, 0.4, 1.0, 1.0)
-LOOP_CLOSURE_RGBA = (1.0, 0.55, 0.0, 1.0)
+TRAJECTORY_RGBA = (222 / 255, 74 / 255, 44 / 255, 1.0)
+LOOP_CLOSURE_RGBA = (0.15, 0.39, 0.92, 1.0)
 
 
 def base_link(robot_id: str) -> str:

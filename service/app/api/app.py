@@ -13,6 +13,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
@@ -52,7 +53,8 @@ def create_app(runtime: MappingRuntime) -> FastAPI:
             runtime.fanout.end_streams()
             runtime.fanout.bind_loop(None)
 
-    app = FastAPI(
+    # Swagger UI and ReDoc assets served from the package, not a CDN: /docs works offline.
+    app = FastAPIOffline(
         title="Manhattan Mapper service",
         version="1",
         description=DESCRIPTION,

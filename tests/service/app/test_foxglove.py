@@ -4,6 +4,7 @@ demo, read by a WebSocket client speaking the Foxglove protocol (tests/.../foxgl
 from __future__ import annotations
 
 import math
+import os
 import re
 import signal
 import subprocess
@@ -99,14 +100,14 @@ def test_demo_prints_a_foxglove_address_a_client_reads(tmp_path: Path) -> None:
                 str(http_port),
                 "--foxglove-port",
                 str(fox_port),
-                "--data-dir",
-                str(tmp_path / "data"),
                 "--duration",
                 "60",
             ],
             stdout=subprocess.PIPE,
             stderr=err,
             cwd=REPO_ROOT,
+            # No --data-dir: the demo keeps its data in a named folder under XDG_DATA_HOME.
+            env={**os.environ, "XDG_DATA_HOME": str(tmp_path / "xdg")},
         )
     try:
         assert demo.stdout is not None
@@ -115,6 +116,8 @@ def test_demo_prints_a_foxglove_address_a_client_reads(tmp_path: Path) -> None:
         assert found, f"no Foxglove line: {lines!r}\n{err_path.read_text()[-3000:]}"
         url = found[0].group(1)
         assert url == f"ws://127.0.0.1:{fox_port}"
+        data_dir = tmp_path / "xdg" / "manhattan-mapper" / "demo"
+        assert any(line.startswith(f"Data: {data_dir} ") for line in lines), lines
         got = fetch(url, {"/robot-1/map", "/robot-1/pose"}, timeout_s=60)
         assert got["/robot-1/map"].message.column_count > 0
         assert got["/robot-1/pose"].message.frame_id == "map"
@@ -124,3 +127,5 @@ def test_demo_prints_a_foxglove_address_a_client_reads(tmp_path: Path) -> None:
         if demo.poll() is None:
             demo.kill()
             demo.wait()
+    # The data outlives the demo (a temporary folder would be gone with the saved maps).
+    assert list((data_dir / "sessions").iterdir())
