@@ -51,3 +51,14 @@ def test_mapping_datasets_points_the_tests_at_another_copy(tmp_path: Path) -> No
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == str(tmp_path)
+
+
+def test_sensor_agent_zenoh_options_have_help() -> None:
+    done = subprocess.run(
+        [sys.executable, "-m", "sensor_agent.cli", "--help"],
+        capture_output=True, text=True, cwd=REPO_ROOT, timeout=60, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0
+    text = " ".join(done.stdout.split())
+    assert "--zenoh-connect ENDPOINT Zenoh router or service to connect to" in text
+    assert "--zenoh-listen ENDPOINT endpoint to accept Zenoh peers on" in text
