@@ -287,8 +287,8 @@ def summary(result: dict[str, Any]) -> dict[str, dict[str, float]]:
 KEEP = "foxglove-cost"
 
 
-def render_section(result: dict[str, Any]) -> str:
-    """The section of docs/benchmarks.md, between markers that `bench.report` keeps."""
+def _block(result: dict[str, Any]) -> list[str]:
+    """One run: how it was made, its windows, and the means."""
     m = result["machine"]
     rows = []
     for w in result["windows"]:
@@ -337,11 +337,7 @@ def render_section(result: dict[str, Any]) -> str:
         f"({ratio('worker_ms_per_scan_mean')}); scan→pose p99 {p99_0:.1f} → {p99_1:.1f} ms; "
         f"dropped {none['dropped']:.0f} → {one['dropped']:.0f} per window."
     )
-    lines = [
-        "",
-        f"<!-- keep:{KEEP} -->",
-        "## Foxglove live view",
-        "",
+    return [
         intro,
         "",
         (
@@ -352,9 +348,26 @@ def render_section(result: dict[str, Any]) -> str:
         *rows,
         "",
         means,
-        f"<!-- /keep:{KEEP} -->",
         "",
     ]
+
+
+def render_section(results: Sequence[dict[str, Any]]) -> str:
+    """The section of docs/benchmarks.md, between markers that `bench.report` keeps."""
+    lines = ["", f"<!-- keep:{KEEP} -->", "## Foxglove live view", ""]
+    lines += [
+        (
+            "What one Foxglove viewer costs the service (`service/app/foxglove.py`: nothing is "
+            "encoded for a channel without a subscriber; the ingest workers only hand the "
+            "latest scan and pose over). The machine is shared with other jobs (load averages "
+            "below), so compare the windows of one table with each other: they alternate under "
+            "the same load."
+        ),
+        "",
+    ]
+    for result in results:
+        lines += _block(result)
+    lines += [f"<!-- /keep:{KEEP} -->", ""]
     return "\n".join(lines)
 
 
@@ -380,13 +393,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--mapper-processes", type=int, default=2)
     p.add_argument("--out", type=Path, default=Path("bench/out/foxglove_cost.json"))
     p.add_argument("--doc", type=Path, default=None, help="write the section into this file")
-    p.add_argument("--from-json", type=Path, default=None, help="render a previous run's JSON")
+    p.add_argument(
+        "--from-json",
+        type=Path,
+        action="append",
+        default=[],
+        help="render previous runs' JSON instead of measuring (repeatable: one table each)",
+    )
     args = p.parse_args(argv)
-    if args.from_json is not None:
-        result = json.loads(args.from_json.read_text())
+    if args.from_json:
+        results = [json.loads(path.read_text()) for path in args.from_json]
         if args.doc is not None:
-            write_section(args.doc, render_section(result))
-        print(render_section(result))
+            write_section(args.doc, render_section(results))
+        print(render_section(results))
         return 0
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     work = Path(tempfile.mkdtemp(prefix="bench-foxglove-work-"))
@@ -405,7 +424,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2, default=str))
     if args.doc is not None:
-        write_section(args.doc, render_section(result))
+        write_section(args.doc, render_section([result]))
     print(json.dumps(result["summary"], indent=2))
     for w in result["windows"]:
         print(json.dumps({k: v for k, v in w.items() if k not in ("t0_ns", "t1_ns")}))

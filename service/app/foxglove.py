@@ -231,6 +231,7 @@ class _Robot:
     pose: PoseInFrameChannel
     trajectory: SceneUpdateChannel
     session_id: str = ""
+    session: Any = None  # the _Session the topics follow (set by the publisher thread)
     latest_scan: Scan | None = None  # guarded by FoxgloveView._lock
     poses: deque[Pose] = field(default_factory=lambda: deque(maxlen=MAX_POSES_PER_TICK))
     scan_sent: Scan | None = None
@@ -375,12 +376,16 @@ class FoxgloveView:
             current = latest.get(session.robot_id)
             if current is None or session.is_active or not current.is_active:
                 latest[session.robot_id] = session
+        for robot_id, gone in self._robots.items():
+            if robot_id not in latest:  # its sessions were deleted: nothing more to draw
+                gone.session = None
         for robot_id, session in latest.items():
             robot = self._robots.get(robot_id)
             if robot is None:
                 robot = self._new_robot(robot_id)
                 with self._lock:
                     self._robots[robot_id] = robot
+            robot.session = session
             if robot.session_id != session.id:
                 robot.session_id = session.id
                 robot.map_sent = None
@@ -395,12 +400,6 @@ class FoxgloveView:
             pose=PoseInFrameChannel(f"/{robot_id}/pose", context=ctx),
             trajectory=SceneUpdateChannel(f"/{robot_id}/trajectory", context=ctx),
         )
-
-    def _session(self, session_id: str) -> _Session | None:
-        for session in self._sessions():
-            if session.id == session_id:
-                return session
-        return None
 
     def _publish(self, now_s: float) -> None:
         tf = self._tf
@@ -445,7 +444,7 @@ class FoxgloveView:
                 self._fresh_topics.discard(robot.trajectory.topic())
         if not map_wanted and not trajectory_wanted:
             return
-        session = self._session(robot.session_id)
+        session: _Session | None = robot.session
         if session is None:
             return
         stamp_ns = time.time_ns()
