@@ -5,6 +5,7 @@ rosbag2 writer with MCAP storage, a bare .mcap) replayed through the agent and m
 from __future__ import annotations
 
 import dataclasses
+import shutil
 import subprocess
 import sys
 import tracemalloc
@@ -196,7 +197,8 @@ def test_a_foreign_rosbag2_mcap_replays_through_the_agent_and_maps(tmp_path: Pat
     scans = [robot.next_scan() for _ in range(40)]
     bag = tmp_path / "bag"
     _write_rosbag2_mcap(bag, scans)
-    bare = next(bag.glob("*.mcap"))
+    bare = tmp_path / "alone.mcap"  # the bag's file without its metadata.yaml beside it
+    shutil.copyfile(next(bag.glob("*.mcap")), bare)
 
     svc = ServiceProc(tmp_path / "data")
     svc.start()
