@@ -26,7 +26,7 @@ from service.app.ingest import Ingest
 from service.app.mapper import Engine, MapperPool
 from service.app.metrics import Labels, Metrics, labels
 from service.app.sessions import SessionManager
-from service.app.settings import ServiceSettings
+from service.app.settings import ServiceSettings, is_loopback_host
 from service.app.store import DataDir, MapStore
 
 log = logging.getLogger(__name__)
@@ -139,6 +139,12 @@ class MappingRuntime:
             raise SettingsError(str(err)) from err
         self.foxglove = view
         self.ingest.scan_observers.append(view.observe)
+        if not is_loopback_host(self.settings.http.host):
+            log.warning(
+                "Foxglove view on %s: the token does not protect it (read-only: maps, scans "
+                "and poses of every robot)",
+                view.url,
+            )
 
     def _on_alive(self, sample: Any) -> None:
         """Liveliness callback: just bookkeeping, never blocks."""
