@@ -456,10 +456,12 @@ class FoxgloveView:
             )
         ):
             revision = session.map_revision
-            robot.map.log(grid_message(session.map_image().image, stamp_ns), log_time=stamp_ns)
-            robot.map_sent = (session.id, revision)
-            robot.map_sent_s = now_s
-            self.counters.grids += 1
+            image = session.map_image().image
+            if image.width and image.height:  # before the first keyframe there is no map
+                robot.map.log(grid_message(image, stamp_ns), log_time=stamp_ns)
+                robot.map_sent = (session.id, revision)
+                robot.map_sent_s = now_s
+                self.counters.grids += 1
         if trajectory_wanted and (
             robot.trajectory_sent_len < 0 or now_s - robot.trajectory_sent_s >= MAP_PERIOD_S
         ):
