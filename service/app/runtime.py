@@ -12,7 +12,7 @@ import logging
 import threading
 import time
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
@@ -21,13 +21,15 @@ from clients.zenoh_config import build_zenoh_config
 from service.app import render
 from service.app.errors import SettingsError, TransportError
 from service.app.fanout import PoseFanout
-from service.app.foxglove import FoxgloveView
 from service.app.ingest import Ingest
 from service.app.mapper import Engine, MapperPool
 from service.app.metrics import Labels, Metrics, labels
 from service.app.sessions import SessionManager
 from service.app.settings import ServiceSettings, is_loopback_host
 from service.app.store import DataDir, MapStore
+
+if TYPE_CHECKING:
+    from service.app.foxglove import FoxgloveView
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +134,8 @@ class MappingRuntime:
         port = self.settings.http.foxglove_port
         if not port:
             return
+        from service.app.foxglove import FoxgloveView  # noqa: PLC0415  # only when enabled
+
         view = FoxgloveView(self.sessions.list, host=self.settings.http.host, port=port)
         try:
             view.start()
