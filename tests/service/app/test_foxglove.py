@@ -125,7 +125,13 @@ def test_demo_prints_a_foxglove_address_a_client_reads(tmp_path: Path) -> None:
         assert demo.wait(timeout=30) == 0, err_path.read_text()[-3000:]
     finally:
         if demo.poll() is None:
-            demo.kill()
-            demo.wait()
+            # Ctrl-C first: the demo stops its agents (own process groups); a bare kill
+            # would orphan them.
+            demo.send_signal(signal.SIGINT)
+            try:
+                demo.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                demo.kill()
+                demo.wait()
     # The data outlives the demo (a temporary folder would be gone with the saved maps).
     assert list((data_dir / "sessions").iterdir())
