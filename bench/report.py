@@ -670,6 +670,23 @@ def render(res: dict[str, Any], doc_path: Path, img_dir: Path) -> str:
     lines += _accuracy_section(res.get("accuracy"), img_dir, img_rel)
     lines += _caveats()
     text = "\n".join(lines).rstrip() + "\n"
+    # Sections measured by their own benchmarks (bench.foxglove_cost) outlive a regeneration.
+    text += kept_sections(doc_path)
     doc_path.parent.mkdir(parents=True, exist_ok=True)
     doc_path.write_text(text)
     return text
+
+
+def kept_sections(doc_path: Path) -> str:
+    """The `<!-- keep:NAME -->` ... `<!-- /keep:NAME -->` blocks of the current document."""
+    try:
+        old = doc_path.read_text()
+    except OSError:
+        return ""
+    blocks = re.findall(r"\n<!-- keep:([\w-]+) -->\n.*?\n<!-- /keep:\1 -->\n", old, flags=re.S)
+    out = []
+    for name in blocks:
+        start = old.index(f"\n<!-- keep:{name} -->\n")
+        end = old.index(f"\n<!-- /keep:{name} -->\n", start) + len(f"\n<!-- /keep:{name} -->\n")
+        out.append(old[start:end])
+    return "".join(out)

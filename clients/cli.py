@@ -49,6 +49,7 @@ examples:
   mapctl sessions --json | jq '.[].id'
   mapctl pose SESSION --follow
   mapctl map SESSION --out map.png
+  mapctl maps get MAP_ID --version 2 --out map.pgm
   mapctl watch
 """
 
@@ -140,7 +141,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", choices=("tum", "json"), default="tum", help="default: tum")
     p.add_argument("--out", default=None, metavar="FILE", help="write to FILE, not stdout")
 
-    add("maps", "list saved maps")
+    p = add("maps", "list saved maps, or download one (`maps get`)")
+    maps_sub = p.add_subparsers(dest="maps_command", metavar="{get}")
+    g = maps_sub.add_parser(
+        "get",
+        parents=[common],
+        help="download a saved map version",
+        description="Download one file of a saved map: the latest version, or --version N.",
+    )
+    g.add_argument("map_id", metavar="MAP_ID", help="a map id from `mapctl maps`")
+    g.add_argument("--version", type=int, default=None, metavar="N", help="default: the latest")
+    g.add_argument("--out", required=True, metavar="FILE", help=".png, .pgm or .yaml")
+    g.add_argument("--format", choices=("png", "pgm", "yaml"), default=None, help="default: --out")
     add("health", "show the service's health")
 
     p = add("watch", "live table of sessions: robots, poses, quality, scan rate")
@@ -277,7 +289,11 @@ def _cmd_pose(client: MappingClient, args: argparse.Namespace, out: TextIO) -> i
                 break
     finally:
         stream.close()
-    return EXIT_OK
+    if args.count is not None and seen >= args.count:
+        return EXIT_OK
+    # The server ended the stream: it is shutting down, or the session went away.
+    _err(f"the pose stream ended after {seen} poses: the service stopped or the session ended")
+    return EXIT_UNAVAILABLE
 
 
 def _cmd_map(client: MappingClient, args: argparse.Namespace, out: TextIO) -> int:
@@ -325,6 +341,8 @@ def _cmd_trajectory(client: MappingClient, args: argparse.Namespace, out: TextIO
 
 
 def _cmd_maps(client: MappingClient, args: argparse.Namespace, out: TextIO) -> int:
+    if getattr(args, "maps_command", None) == "get":
+        return _cmd_maps_get(client, args, out)
     maps = client.list_maps()
     if args.json:
         _dump([m.to_json() for m in maps], out)
@@ -332,6 +350,34 @@ def _cmd_maps(client: MappingClient, args: argparse.Namespace, out: TextIO) -> i
         out.write("no saved maps\n")
     else:
         out.write(_maps_table(maps) + "\n")
+    return EXIT_OK
+
+
+def _cmd_maps_get(client: MappingClient, args: argparse.Namespace, out: TextIO) -> int:
+    path = Path(args.out)
+    chosen = args.format or path.suffix.lower().lstrip(".")
+    if chosen not in ("png", "pgm", "yaml"):
+        _err(f"cannot tell the format of {path.name!r}: use .png, .pgm, .yaml or --format")
+        return EXIT_USAGE
+    fmt: MapFormat = chosen  # type: ignore[assignment]  # checked just above
+    versions = sorted(m.version for m in client.list_maps() if m.map_id == args.map_id)
+    if not versions:
+        _err(f"no saved map {args.map_id!r} (see `mapctl maps`)")
+        return EXIT_REFUSED
+    version = versions[-1] if args.version is None else args.version
+    if version not in versions:
+        _err(f"map {args.map_id} has no version {version} (versions: {versions})")
+        return EXIT_REFUSED
+    data = client.download_map(args.map_id, version, fmt)
+    path.write_bytes(data)
+    if args.json:
+        _dump(
+            {"path": str(path), "map_id": args.map_id, "version": version, "format": fmt,
+             "bytes": len(data)},
+            out,
+        )  # fmt: skip
+    else:
+        out.write(f"wrote {path} (map {args.map_id} v{version}, {fmt}, {len(data)} bytes)\n")
     return EXIT_OK
 
 

@@ -1,8 +1,11 @@
-"""Read laser logs as wire `Scan`s: ROS 1 bags, ROS 2 bags and our own `.mrec` recordings.
+"""Read laser logs as wire `Scan`s: ROS 1 bags, ROS 2 bags, MCAP files and `.mrec` recordings.
 
-Bags are read with `rosbags`. A ROS 1 bag that `rosbags` refuses (damaged index records, a
-missing index after a crash, a truncated file) is read again by a tolerant reader that walks
-the records one by one, the way `rosbag reindex` would, and resynchronises after damage.
+Bags are read with `rosbags`: ROS 2 bag folders with either storage (SQLite or MCAP, the
+default since Iron), and a bare `.mcap` file with ROS 2 (CDR) messages, as written by rosbag2,
+rosbags or `mapping-service export --mcap`. A ROS 1 bag that `rosbags` refuses (damaged index
+records, a missing index after a crash, a truncated file) is read again by a tolerant reader
+that walks the records one by one, the way `rosbag reindex` would, and resynchronises after
+damage.
 
 Each `sensor_msgs/LaserScan` becomes a `Scan` whose `sensor_stamp_ns` and `host_stamp_ns` are
 both the message header stamp: trajectories and the relation metric key on that stamp. Ranges
@@ -36,9 +39,10 @@ from clients.wire import OdometryPose, Scan
 
 log = logging.getLogger(__name__)
 
-LogKind = Literal["ros1", "ros2", "mrec"]
+LogKind = Literal["ros1", "ros2", "mcap", "mrec"]
 
 ROS1_MAGIC: Final = b"#ROSBAG V2.0\n"
+MCAP_MAGIC: Final = b"\x89MCAP0\r\n"
 LASER_SCAN_TYPE: Final = "sensor_msgs/msg/LaserScan"
 ODOMETRY_TYPE: Final = "nav_msgs/msg/Odometry"
 
@@ -95,7 +99,8 @@ class LogInfo:
 
 
 def detect_log_kind(path: str | Path) -> LogKind:
-    """`"ros1"`, `"ros2"` or `"mrec"` from the file's first bytes; `LogReadError` otherwise."""
+    """`"ros1"`, `"ros2"` (a bag folder, or a file in one), `"mcap"` (a bare MCAP file) or
+    `"mrec"` from the file's first bytes; `LogReadError` otherwise."""
     p = Path(path)
     if p.is_dir():
         if (p / "metadata.yaml").exists():
@@ -114,7 +119,9 @@ def detect_log_kind(path: str | Path) -> LogKind:
         return "ros1"
     if p.suffix in (".db3", ".mcap") and (p.parent / "metadata.yaml").exists():
         return "ros2"
-    raise LogReadError(f"{p}: not a ROS 1 bag, ROS 2 bag or .mrec recording")
+    if head.startswith(MCAP_MAGIC):
+        return "mcap"
+    raise LogReadError(f"{p}: not a ROS 1 bag, ROS 2 bag, MCAP file or .mrec recording")
 
 
 def iter_log_scans(

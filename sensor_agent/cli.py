@@ -39,7 +39,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="serial port or pyserial URL: /dev/ttyACM0, socket://192.168.0.10:10940",
     )
     src.add_argument("--emulate", action="store_true", help="run the built-in UTM-30LX emulator")
-    src.add_argument("--replay", metavar="FILE", help="ROS 1/2 bag or .mrec recording to replay")
+    src.add_argument(
+        "--replay",
+        metavar="FILE",
+        help="ROS 1 bag, ROS 2 bag folder (SQLite or MCAP storage), .mcap file or .mrec "
+        "recording to replay",
+    )
     parser.add_argument("--world-seed", type=int, default=1, help="emulated building (default: 1)")
     parser.add_argument(
         "--rate",
@@ -47,8 +52,20 @@ def build_parser() -> argparse.ArgumentParser:
         default=1.0,
         help="replay speed factor; 0 = as fast as possible (default: %(default)s)",
     )
-    parser.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT")
-    parser.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT")
+    parser.add_argument(
+        "--zenoh-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh router or service to connect to, e.g. tcp/server:7447 (repeatable)",
+    )
+    parser.add_argument(
+        "--zenoh-listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="endpoint to accept Zenoh peers on, e.g. tcp/0.0.0.0:7448 (repeatable)",
+    )
     parser.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file")
     parser.add_argument(
         "--zenoh-mode",

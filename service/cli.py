@@ -42,7 +42,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="mapping-service",
         description=(
             "Map buildings from 2D laser scans. `serve` runs the networked service, `map` maps a "
-            "recording offline, `demo` runs the service with a simulated robot."
+            "recording offline, `export` writes one as MCAP, `demo` runs the service with a "
+            "simulated robot."
         ),
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
@@ -50,10 +51,15 @@ def build_parser() -> argparse.ArgumentParser:
 
     p_map = sub.add_parser(
         "map",
-        help="map a ROS 1/2 bag or a recording offline",
-        description="Map a ROS 1/2 bag or one of our recordings; write trajectory, map and report.",
+        help="map a ROS 1/2 bag, an MCAP file or a recording offline",
+        description="Map a ROS 1 bag, a ROS 2 bag (SQLite or MCAP storage), an MCAP file or one "
+        "of our recordings; write trajectory, map and report.",
     )
-    p_map.add_argument("input", metavar="INPUT", help="ROS 1 bag, ROS 2 bag folder, or .mrec file")
+    p_map.add_argument(
+        "input",
+        metavar="INPUT",
+        help="ROS 1 bag, ROS 2 bag folder, .mcap file (ROS 2 messages), or .mrec file",
+    )
     p_map.add_argument("--out", required=True, metavar="DIR", help="output directory")
     p_map.add_argument(
         "--scan-topic", default="/scan", help="LaserScan topic (default: %(default)s)"
@@ -72,6 +78,25 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_map.add_argument("--no-progress", action="store_true", help="no progress bar")
     p_map.set_defaults(handler="service.offline:run_map")
+
+    p_export = sub.add_parser(
+        "export",
+        help="write a session or a recording as MCAP (ROS 2 messages)",
+        description="Write a session's recording (or a .mrec file) as MCAP with ROS 2 schemas: "
+        "/scan sensor_msgs/msg/LaserScan, /pose geometry_msgs/msg/PoseStamped, /tf "
+        "tf2_msgs/msg/TFMessage, /map nav_msgs/msg/OccupancyGrid (the final map), stamped "
+        "with the scans' stamps. Streams: memory does not grow with the recording's length.",
+    )
+    p_export.add_argument(
+        "source",
+        metavar="SESSION_OR_RECORDING",
+        help="a session id in --data-dir, or a .mrec recording file",
+    )
+    p_export.add_argument("--mcap", required=True, metavar="OUT", help="MCAP file to write")
+    p_export.add_argument(
+        "--data-dir", default="./data", help="the service's state directory (default: %(default)s)"
+    )
+    p_export.set_defaults(handler="service.export:run_export")
 
     p_serve = sub.add_parser(
         "serve",
@@ -101,6 +126,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="run the estimators in K worker processes, to use K cores with many robots "
         "(or env MAPPING_MAPPER_PROCESSES; default: 0, in the service's process)",
     )
+    p_serve.add_argument(
+        "--foxglove-port",
+        type=int,
+        default=0,
+        metavar="PORT",
+        help="serve the Foxglove WebSocket live view on the HTTP host at PORT "
+        "(e.g. 8765; default 0: off; same loopback/token rule as HTTP)",
+    )
     _add_zenoh_args(p_serve)
     p_serve.set_defaults(handler="service.app.main:run_serve")
 
@@ -114,7 +147,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_demo.add_argument("--http-host", default="127.0.0.1", help="default: %(default)s")
     p_demo.add_argument("--http-port", type=int, default=8000, help="default: %(default)s")
-    p_demo.add_argument("--data-dir", default=None, help="state directory (default: a temp dir)")
+    p_demo.add_argument(
+        "--data-dir",
+        default=None,
+        help="state directory, kept after the demo (default: "
+        "$XDG_DATA_HOME/manhattan-mapper/demo, i.e. ~/.local/share/manhattan-mapper/demo)",
+    )
+    p_demo.add_argument(
+        "--foxglove-port",
+        type=int,
+        default=8765,
+        metavar="PORT",
+        help="Foxglove WebSocket live view port (default: %(default)s; 0: off)",
+    )
     p_demo.add_argument("--world-seed", type=int, default=1, help="simulated building (default: 1)")
     p_demo.add_argument("--robots", type=int, default=1, help="number of simulated robots")
     p_demo.add_argument(

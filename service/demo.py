@@ -9,17 +9,19 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import socket
 import subprocess
 import sys
-import tempfile
 import threading
+from collections.abc import Mapping
 from pathlib import Path
 
 from service.app.errors import ConflictError
 from service.app.main import EXIT_USAGE, log_settings, run_runtime
 from service.app.runtime import MappingRuntime
+from service.app.sessions import MappingSession
 from service.app.settings import (
     HttpSettings,
     ServiceSettings,
@@ -37,6 +39,14 @@ def _free_loopback_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
+
+
+def default_demo_dir(env: Mapping[str, str] | None = None) -> Path:
+    """`$XDG_DATA_HOME/manhattan-mapper/demo` (default `~/.local/share/...`): a named folder
+    that outlives the demo, so that maps saved in it are not lost on exit."""
+    env = os.environ if env is None else env
+    base = env.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "manhattan-mapper" / "demo"
 
 
 def agent_command(robot_id: str, world_seed: int, endpoint: str, prefix: str) -> list[str]:
@@ -60,7 +70,10 @@ def agent_command(robot_id: str, world_seed: int, endpoint: str, prefix: str) ->
 class Fleet:
     """The demo's simulated robots: one agent process each, and their sessions."""
 
-    def __init__(self, robots: int, world_seed: int, endpoint: str) -> None:
+    def __init__(
+        self, robots: int, world_seed: int, endpoint: str, data_dir: Path | None = None
+    ) -> None:
+        self._data_dir = data_dir
         self.robot_ids = [f"robot-{i + 1}" for i in range(robots)]
         self._world_seed = world_seed
         self._endpoint = endpoint
@@ -72,12 +85,16 @@ class Fleet:
         prefix = runtime.settings.zenoh.prefix
         session_ids = []
         for index, robot_id in enumerate(self.robot_ids):
-            session = runtime.sessions.active_for(robot_id)
-            if session is None:
-                try:
-                    session = runtime.sessions.create(robot_id, 0.05, True)
-                except ConflictError:
-                    session = runtime.sessions.active_for(robot_id)
+            previous = runtime.sessions.active_for(robot_id)
+            if previous is not None:
+                # A kept data folder: the simulated robot starts again where it started, so
+                # it gets a new map; the previous session stays (stopped) with its map.
+                runtime.sessions.stop(previous.id)
+            session: MappingSession | None
+            try:
+                session = runtime.sessions.create(robot_id, 0.05, True)
+            except ConflictError:
+                session = runtime.sessions.active_for(robot_id)
             if session is not None:
                 session_ids.append(session.id)
             with self._lock:
@@ -97,8 +114,16 @@ class Fleet:
                 target=self._watch, args=(robot_id, child), name=f"watch-{robot_id}", daemon=True
             ).start()
         first = f"?session={session_ids[0]}" if session_ids else ""
-        # The one line of output the demo exists for (the CLI's result, hence stdout).
-        print(f"Live map: {url}/{first}   (API docs: {url}/docs; Ctrl-C to stop)", flush=True)  # noqa: T201
+        # The lines of output the demo exists for (the CLI's result, hence stdout).
+        lines = [f"Live map: {url}/{first}   (API docs: {url}/docs; Ctrl-C to stop)"]
+        if runtime.foxglove is not None:
+            lines.append(
+                f"Foxglove: {runtime.foxglove.url}   (Foxglove: Open connection > "
+                "Foxglove WebSocket; topics /<robot>/map, /scan, /pose, /trajectory, /tf)"
+            )
+        if self._data_dir is not None:
+            lines.append(f"Data: {self._data_dir}   (sessions and saved maps are kept here)")
+        print("\n".join(lines), flush=True)  # noqa: T201
 
     def _watch(self, robot_id: str, child: subprocess.Popen[bytes]) -> None:
         code = child.wait()
@@ -128,20 +153,19 @@ def run_demo(args: argparse.Namespace) -> int:
     if not is_loopback_host(args.http_host):
         log.error("the demo has no token: it serves on loopback only")
         return EXIT_USAGE
-    tmp: tempfile.TemporaryDirectory[str] | None = None
-    if args.data_dir is None:
-        tmp = tempfile.TemporaryDirectory(prefix="mapping-demo-")
-        data_dir = Path(tmp.name)
-    else:
-        data_dir = Path(args.data_dir)
+    data_dir = (Path(args.data_dir) if args.data_dir else default_demo_dir()).absolute()
+    # Printed at start (stderr) and beside the address (stdout): saved maps live there.
+    log.warning("demo data (sessions, saved maps) in %s; it is kept after the demo", data_dir)
     endpoint = f"tcp/127.0.0.1:{_free_loopback_port()}"
     settings = ServiceSettings(
-        http=HttpSettings(host=args.http_host, port=args.http_port),
+        http=HttpSettings(
+            host=args.http_host, port=args.http_port, foxglove_port=args.foxglove_port
+        ),
         zenoh=ZenohSettings(listen=(endpoint,)),
         storage=StorageSettings(data_dir=data_dir),
     )
     log_settings(settings)
-    fleet = Fleet(args.robots, args.world_seed, endpoint)
+    fleet = Fleet(args.robots, args.world_seed, endpoint, data_dir)
     runtime_box: list[MappingRuntime] = []
 
     def make_runtime(s: ServiceSettings) -> MappingRuntime:
@@ -158,8 +182,6 @@ def run_demo(args: argparse.Namespace) -> int:
         )
     finally:
         fleet.stop()
-        if tmp is not None:
-            tmp.cleanup()
 
 
-__all__ = ["Fleet", "agent_command", "run_demo"]
+__all__ = ["Fleet", "agent_command", "default_demo_dir", "run_demo"]

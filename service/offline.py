@@ -303,6 +303,28 @@ def write_outputs(
     return report
 
 
+def check_output_dir(out_dir: str | Path) -> None:
+    """Raise `OfflineError` when `out_dir` cannot become the output directory: checked before
+    the input is read, so a mistyped --out fails at once, not after a whole bag."""
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise OfflineError(f"--out {out} exists and is not a directory")
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise OfflineError(f"--out {out}: {existing} is not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise OfflineError(f"--out {out}: {existing} is not writable")
+    if existing == out:  # a real write also catches read-only file systems, even as root
+        probe = out / f".write-test-{os.getpid()}"
+        try:
+            probe.write_bytes(b"")
+            probe.unlink()
+        except OSError as err:
+            raise OfflineError(f"cannot write to {out}: {err.strerror or err}") from None
+
+
 def _write_bytes(path: Path, data: bytes) -> None:
     # Write then rename, so a reader never sees half a file.
     tmp = path.with_name(f".{path.name}.tmp")
@@ -347,6 +369,11 @@ def run_map(args: argparse.Namespace) -> int:
         _fail(f"--resolution must be between 0.005 and 10 m, got {args.resolution}")
         return EXIT_INPUT
     use_odometry = not args.no_odom
+    try:
+        check_output_dir(args.out)
+    except OfflineError as err:
+        _fail(str(err))
+        return EXIT_OUTPUT
     try:
         info = probe_log(args.input, scan_topic=args.scan_topic, odom_topic=args.odom_topic)
         if info.scan_count == 0:

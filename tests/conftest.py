@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 import time
 from collections.abc import Callable
@@ -10,7 +11,8 @@ from pathlib import Path
 import pytest
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
-DATASETS = REPO_ROOT.parent / "shared" / "datasets"
+# MAPPING_DATASETS points the tests at another copy of the recordings.
+DATASETS = Path(os.environ.get("MAPPING_DATASETS") or REPO_ROOT.parent / "shared" / "datasets")
 
 
 def dataset_path(*parts: str) -> Path:

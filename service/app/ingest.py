@@ -28,7 +28,7 @@ from typing import Any
 import zenoh
 
 from clients.keyexpr import robot_id_from_key
-from clients.wire import DecodeError, Pose, decode_scan, is_valid_robot_id
+from clients.wire import DecodeError, Pose, Scan, decode_scan, is_valid_robot_id
 from service.app.errors import ServiceError
 from service.app.metrics import SCAN_SECONDS_BUCKETS, Labels, Metrics, labels
 from service.app.sessions import SessionManager
@@ -108,6 +108,9 @@ class Ingest:
         self.store_errors = 0
         self._logged: set[tuple[str, str]] = set()
         self._logged_lock = threading.Lock()
+        # Called with each accepted scan and its pose after publishing (the Foxglove view);
+        # an observer must not block: it runs on the worker.
+        self.scan_observers: list[Callable[[Scan, Pose | None], None]] = []
         declare_metrics(metrics, self._depths)
 
     # -- Zenoh side (must never block) -----------------------------------------------------
@@ -234,6 +237,11 @@ class Ingest:
                 self._publish(result.pose, result.pose_bytes)
             except Exception:
                 log.exception("publishing a pose of %s failed", robot_id)
+        for observer in self.scan_observers:
+            try:
+                observer(scan, result.pose)
+            except Exception:
+                log.exception("a scan observer failed on %s", robot_id)
         self._metrics.observe(SCAN_SECONDS, time.perf_counter() - t0)
 
     # -- bookkeeping -----------------------------------------------------------------------

@@ -12,21 +12,24 @@ import logging
 import threading
 import time
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 
 from clients.keyexpr import alive_wildcard, robot_id_from_key, scan_wildcard
 from clients.zenoh_config import build_zenoh_config
 from service.app import render
-from service.app.errors import TransportError
+from service.app.errors import SettingsError, TransportError
 from service.app.fanout import PoseFanout
 from service.app.ingest import Ingest
 from service.app.mapper import Engine, MapperPool
 from service.app.metrics import Labels, Metrics, labels
 from service.app.sessions import SessionManager
-from service.app.settings import ServiceSettings
+from service.app.settings import ServiceSettings, is_loopback_host
 from service.app.store import DataDir, MapStore
+
+if TYPE_CHECKING:
+    from service.app.foxglove import FoxgloveView
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +61,7 @@ class MappingRuntime:
         self.ingest = Ingest(
             prefix, self.sessions, self.fanout.publish, self.metrics, settings.ingest
         )
+        self.foxglove: FoxgloveView | None = None  # started with the runtime when configured
         self._zenoh_config = zenoh_config
         self.zenoh: zenoh.Session | None = None
         self._subscribers: list[Any] = []
@@ -98,6 +102,7 @@ class MappingRuntime:
                 time.monotonic() - t0,
             )
             self._open_zenoh()
+            self._start_foxglove()
             self._syncer = threading.Thread(target=self._sync_loop, name="fsync", daemon=True)
             self._syncer.start()
             self.started_ns = time.time_ns()
@@ -124,6 +129,26 @@ class MappingRuntime:
             )
         )
         log.info("Zenoh session %s subscribed to %s", self.zenoh.zid(), scan_wildcard(z.prefix))
+
+    def _start_foxglove(self) -> None:
+        port = self.settings.http.foxglove_port
+        if not port:
+            return
+        from service.app.foxglove import FoxgloveView  # noqa: PLC0415  # only when enabled
+
+        view = FoxgloveView(self.sessions.list, host=self.settings.http.host, port=port)
+        try:
+            view.start()
+        except OSError as err:
+            raise SettingsError(str(err)) from err
+        self.foxglove = view
+        self.ingest.scan_observers.append(view.observe)
+        if not is_loopback_host(self.settings.http.host):
+            log.warning(
+                "Foxglove view on %s: the token does not protect it (read-only: maps, scans "
+                "and poses of every robot)",
+                view.url,
+            )
 
     def _on_alive(self, sample: Any) -> None:
         """Liveliness callback: just bookkeeping, never blocks."""
@@ -160,6 +185,9 @@ class MappingRuntime:
                 log.debug("undeclare: %s", err)
         self._subscribers.clear()
         self.ingest.close()
+        if self.foxglove is not None:
+            self.foxglove.close()
+            self.foxglove = None
         self._stop.set()
         if self._syncer is not None:
             self._syncer.join(timeout=10)

@@ -15,6 +15,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Final, NamedTuple
 
 import numpy as np
@@ -411,6 +412,12 @@ class MappingSession:
                 use_odometry=self.use_odometry,
                 last_pose=self._poses[-1] if self._poses else None,
             )
+
+    def recording_path(self) -> Path:
+        """The current map's recording (scans and poses); it may be read while it grows:
+        readers stop at the last complete record."""
+        with self.lock:
+            return self._store.recording_path
 
     @property
     def last_pose(self) -> Pose | None:

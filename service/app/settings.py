@@ -33,6 +33,8 @@ class HttpSettings(_Frozen):
     port: int = Field(default=8000, ge=0, le=65535)
     max_body_bytes: int = Field(default=64 * 1024, ge=1024, description="request bodies above: 413")
     sse_queue_depth: int = Field(default=64, ge=1, description="poses buffered per browser stream")
+    # The Foxglove WebSocket live view binds the HTTP host; 0 leaves it off.
+    foxglove_port: int = Field(default=0, ge=0, le=65535, description="0: no Foxglove view")
 
 
 class ZenohSettings(_Frozen):
@@ -150,6 +152,7 @@ def build_settings(
         "http": {
             "host": args.http_host,
             "port": args.http_port,
+            "foxglove_port": getattr(args, "foxglove_port", None) or 0,
             **from_env(max_body_bytes="MAX_BODY_BYTES", sse_queue_depth="SSE_QUEUE_DEPTH"),
         },
         "zenoh": {

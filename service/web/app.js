@@ -25,6 +25,7 @@
     canvas: $("map-canvas"),
     wrap: $("map-wrap"),
     empty: $("map-empty"),
+    emptyTitle: $("map-empty-title"),
     emptyText: $("map-empty-text"),
     follow: $("btn-follow"),
     fit: $("btn-fit"),
@@ -52,6 +53,12 @@
   };
   const ctx = el.canvas.getContext("2d");
 
+  // The colours of map.png (service/mapio.py _TRAJECTORY_RGB, _ROBOT_RGB): the page and the
+  // downloaded image draw the trajectory and the robot alike.
+  const TRAJECTORY_RGB = [222, 74, 44];
+  const ROBOT_RGB = [18, 140, 96];
+  const rgb = (c, a = 1) => `rgba(${c[0]}, ${c[1]}, ${c[2]}, ${a})`;
+
   const state = {
     sessions: [],
     sessionId: null,
@@ -69,6 +76,8 @@
     follow: false,
     dirty: true,
     mapBusy: false,
+    mapTried: false, // the first map request of this session has answered
+    missing: null, // the ?session= id that does not exist on this service
     nextMapAt: 0,
     drag: null,
   };
@@ -153,7 +162,18 @@
     state.sessions = list;
     renderPicker();
     if (state.sessionId === null) {
+      if (state.missing) {
+        renderSession(); // keep saying so until the user picks a session
+        return;
+      }
       const wanted = new URLSearchParams(location.search).get("session");
+      if (wanted && !list.some((s) => s.id === wanted)) {
+        // Never silently show another session than the one the address names.
+        state.missing = wanted;
+        say(`Session ${wanted} does not exist on this service.`, "error");
+        renderSession();
+        return;
+      }
       const pick =
         list.find((s) => s.id === wanted) ||
         [...list].filter((s) => s.state === "active").sort((a, b) => b.created_ns - a.created_ns)[0] ||
@@ -194,8 +214,10 @@
       state.es = null;
     }
     state.sessionId = id;
+    if (id) state.missing = null;
     state.session = null;
     state.map = null;
+    state.mapTried = false;
     state.mapKey = null;
     state.nextMapAt = 0;
     state.traj = [];
@@ -267,13 +289,21 @@
     el.sSize.textContent = m
       ? `${(m.width * m.info.resolution).toFixed(1)} × ${(m.height * m.info.resolution).toFixed(1)} m`
       : "–";
-    if (!state.sessionId) {
+    let title = "No map yet";
+    if (state.missing && !state.sessionId) {
+      title = "No such session";
+      el.emptyText.textContent = `Session ${state.missing} does not exist on this service. Pick one above.`;
+    } else if (!state.sessionId) {
       el.emptyText.textContent = state.sessions.length
         ? "Pick a session above."
         : "No sessions yet: enter a robot id and press Start.";
+    } else if (!state.mapTried) {
+      title = "Loading…";
+      el.emptyText.textContent = "Loading the map of this session…";
     } else {
       el.emptyText.textContent = "Waiting for the first scans of this robot…";
     }
+    el.emptyTitle.textContent = title;
     el.empty.hidden = !!state.map;
     renderStatus();
   }
@@ -468,6 +498,10 @@
       // 404 until the first scan: keep the placeholder.
     } finally {
       state.mapBusy = false;
+      if (state.sessionId === id && !state.mapTried) {
+        state.mapTried = true;
+        renderSession();
+      }
       // Big maps on slow links: never spend more than a quarter of the time downloading.
       state.nextMapAt = performance.now() + 3 * (performance.now() - t0);
     }
@@ -602,12 +636,12 @@
       ctx.lineWidth = 5;
       tracePath(traj, sx, sy);
       ctx.stroke();
-      ctx.strokeStyle = "#2563eb";
+      ctx.strokeStyle = rgb(TRAJECTORY_RGB);
       ctx.lineWidth = 2.5;
       tracePath(traj, sx, sy);
       ctx.stroke();
       const [x0, y0] = traj[0];
-      ctx.fillStyle = "#15803d";
+      ctx.fillStyle = rgb(TRAJECTORY_RGB);
       ctx.strokeStyle = "#fff";
       ctx.lineWidth = 2;
       ctx.beginPath();
@@ -663,7 +697,7 @@
     const r = Math.max(9, Math.min(22, 0.3 * state.view.scale));
     // Halo whose size grows as quality drops: a quick visual of uncertainty.
     const halo = r * (1.6 + 1.4 * (1 - Math.max(0, Math.min(1, quality))));
-    ctx.fillStyle = "rgba(234, 88, 12, 0.16)";
+    ctx.fillStyle = rgb(ROBOT_RGB, 0.16);
     ctx.beginPath();
     ctx.arc(x, y, halo, 0, 2 * Math.PI);
     ctx.fill();
@@ -676,7 +710,7 @@
     ctx.lineTo(-r * 0.4, 0);
     ctx.lineTo(-r * 0.8, -r * 0.75);
     ctx.closePath();
-    ctx.fillStyle = "#ea580c";
+    ctx.fillStyle = rgb(ROBOT_RGB);
     ctx.strokeStyle = "#ffffff";
     ctx.lineWidth = 2;
     ctx.fill();

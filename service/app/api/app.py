@@ -13,12 +13,13 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from starlette.datastructures import Headers
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 import service
-from service.app.api import routes_maps, routes_sessions, routes_system
+from service.app.api import routes_export, routes_maps, routes_sessions, routes_system
 from service.app.errors import ServiceError, StoreError
 from service.app.runtime import MappingRuntime
 
@@ -52,7 +53,8 @@ def create_app(runtime: MappingRuntime) -> FastAPI:
             runtime.fanout.end_streams()
             runtime.fanout.bind_loop(None)
 
-    app = FastAPI(
+    # Swagger UI and ReDoc assets served from the package, not a CDN: /docs works offline.
+    app = FastAPIOffline(
         title="Manhattan Mapper service",
         version="1",
         description=DESCRIPTION,
@@ -84,6 +86,7 @@ def create_app(runtime: MappingRuntime) -> FastAPI:
         )
 
     app.include_router(routes_sessions.router)
+    app.include_router(routes_export.router)
     app.include_router(routes_maps.router)
     app.include_router(routes_system.router)
 

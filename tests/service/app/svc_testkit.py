@@ -136,7 +136,12 @@ class ServiceProc:
         self.log_path = data_dir.parent / f"service-{self.http_port}.log"
         self.proc: subprocess.Popen[bytes] | None = None
 
-    def start(self, timeout_s: float = 30.0, env: dict[str, str] | None = None) -> None:
+    def start(
+        self,
+        timeout_s: float = 30.0,
+        env: dict[str, str] | None = None,
+        args: list[str] | None = None,
+    ) -> None:
         cmd = [
             sys.executable,
             "-m",
@@ -153,6 +158,7 @@ class ServiceProc:
         ]
         if self.token:
             cmd += ["--token", self.token]
+        cmd += args or []
         full_env = {k: v for k, v in os.environ.items() if k != "MAPPING_TOKEN"}
         full_env.update(env or {})
         with self.log_path.open("ab") as log:

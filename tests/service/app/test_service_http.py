@@ -257,6 +257,7 @@ def test_openapi_documents_every_route(client: TestClient) -> None:
         ("get", "/sessions/{session_id}/map.pgm"),
         ("get", "/sessions/{session_id}/map.yaml"),
         ("get", "/sessions/{session_id}/pose/stream"),
+        ("get", "/sessions/{session_id}/recording.mcap"),
         ("get", "/maps"),
         ("get", "/maps/{map_id}/{version}/map.png"),
         ("get", "/maps/{map_id}/{version}/map.pgm"),

@@ -1,0 +1,61 @@
+"""`GET /sessions/{id}/recording.mcap`: a session's scans, poses and map as MCAP (ROS 2)."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from typing import Any
+
+from fastapi import APIRouter
+from fastapi.responses import StreamingResponse
+
+from clients.recording import RecordingError, read_messages
+from clients.wire import Pose, Scan
+from service.app.api.routes_sessions import NO_STORE, SessionDep
+from service.app.api.schemas import errors
+from service.mcapio import stream_mcap
+
+log = logging.getLogger(__name__)
+
+router = APIRouter(prefix="/sessions", tags=["sessions"])
+
+MCAP_MEDIA_TYPE = "application/x-mcap"
+
+
+@router.get(
+    "/{session_id}/recording.mcap",
+    response_class=StreamingResponse,
+    response_model=None,
+    summary="Recording as MCAP (ROS 2 schemas)",
+    description="Every scan (`/scan`, sensor_msgs/msg/LaserScan), every pose (`/pose`, "
+    "geometry_msgs/msg/PoseStamped, and `/tf`, tf2_msgs/msg/TFMessage map -> "
+    "<robot>/base_link), stamped with the scans' stamps, then the current map (`/map`, "
+    "nav_msgs/msg/OccupancyGrid). Streamed as it is written; of an active session, what is "
+    "recorded when the download reaches it.",
+    responses={
+        200: {"content": {MCAP_MEDIA_TYPE: {}}, "description": "an MCAP file"},
+        **errors(404, 422),
+    },
+)
+def read_recording_mcap(session: SessionDep) -> StreamingResponse:
+    path = session.recording_path()
+
+    def messages() -> Iterator[Scan | Pose]:
+        if not path.exists():  # no scan yet (or reset): an MCAP with the map only
+            return
+        try:
+            yield from read_messages(path)
+        except (RecordingError, OSError) as err:  # headers are sent: end the file here
+            log.error("session %s: export stopped: %s", session.id, err)
+
+    def final_map() -> Any:
+        return session.map_image().image
+
+    return StreamingResponse(
+        stream_mcap(messages(), final_map),
+        media_type=MCAP_MEDIA_TYPE,
+        headers={
+            **NO_STORE,
+            "Content-Disposition": f'attachment; filename="{session.id}.mcap"',
+        },
+    )

@@ -1,0 +1,476 @@
+"""Foxglove live view: the service's robots over the Foxglove WebSocket protocol (foxglove-sdk).
+
+Per robot with a session, on topics under `/<robot_id>/`:
+- `map` (`foxglove.Grid`, frame `map`): re-sent when the map changes, at most once per second;
+- `scan` (`foxglove.LaserScan`, frame `<robot_id>/base_link`): the latest scan, at most 10 Hz;
+- `pose` (`foxglove.PoseInFrame`, frame `map`) and the transform `map -> <robot_id>/base_link`
+  on `/tf` (`foxglove.FrameTransforms`), so that a 3-D panel places the robot;
+- `trajectory` (`foxglove.SceneUpdate`): the trajectory as a line strip and the accepted loop
+  closures as lines, when the session exposes them (`loop_closures()`), at most once per second.
+
+Why a publisher thread and not encoding on the ingest worker: the worker only hands the latest
+scan and pose over (`observe`: a lock held for a dict assignment and a deque append, no
+encoding), so a slow or absent viewer can never delay a pose. The publisher thread wakes every
+50 ms, asks each channel whether anyone subscribes (`has_sinks`, a flag read in the SDK) and
+encodes only for channels that have a subscriber. The SDK's server buffers a bounded number of
+messages per client and drops the oldest for a slow one.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import foxglove
+import numpy as np
+from foxglove.channels import (
+    FrameTransformsChannel,
+    GridChannel,
+    LaserScanChannel,
+    PoseInFrameChannel,
+    SceneUpdateChannel,
+)
+from foxglove.messages import (
+    Color,
+    FrameTransform,
+    FrameTransforms,
+    Grid,
+    LaserScan,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    PackedElementField,
+    PackedElementFieldNumericType,
+    Point3,
+    PoseInFrame,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    Timestamp,
+    Vector2,
+    Vector3,
+)
+from foxglove.messages import Pose as FgPose
+from foxglove.websocket import ServerListener
+
+from clients.wire import Pose, Scan
+
+log = logging.getLogger(__name__)
+
+MAP_FRAME = "map"
+MAP_PERIOD_S = 1.0  # the map and the trajectory: at most once per second
+SCAN_PERIOD_S = 0.1  # scans decimated to at most 10 Hz
+TICK_S = 0.05
+MAX_TRAJECTORY_POINTS = 5000  # a line strip of an hour at 40 Hz, decimated
+MAX_POSES_PER_TICK = 64  # poses buffered per robot between ticks (oldest dropped)
+# map.png's and the web page's trajectory colour (service/mapio.py _TRAJECTORY_RGB), and a
+# distinct one for loop closures.
+TRAJECTORY_RGBA = (222 / 255, 74 / 255, 44 / 255, 1.0)
+LOOP_CLOSURE_RGBA = (0.15, 0.39, 0.92, 1.0)
+
+
+def base_link(robot_id: str) -> str:
+    return f"{robot_id}/base_link"
+
+
+class _Session(Protocol):
+    """What the view reads of a `MappingSession` (a Protocol: tests may pass their own)."""
+
+    id: str
+    robot_id: str
+    map_revision: int
+
+    @property
+    def is_active(self) -> bool: ...
+
+    def map_image(self) -> Any: ...
+
+    def trajectory(self) -> list[Pose]: ...
+
+
+SessionsSource = Callable[[], Iterable[_Session]]
+# Loop closures of a session as pairs of (x_m, y_m) points in the map frame. The lead's pose
+# graph may expose them as `session.loop_closures()` (or `GET /sessions/{id}/graph`); until
+# then the default finds none.
+LoopClosureSource = Callable[[_Session], Sequence[tuple[tuple[float, float], tuple[float, float]]]]
+
+
+def session_loop_closures(
+    session: _Session,
+) -> Sequence[tuple[tuple[float, float], tuple[float, float]]]:
+    getter = getattr(session, "loop_closures", None)
+    if getter is None:
+        return ()
+    try:
+        return list(getter())
+    except Exception as err:  # a hook must not stop the view
+        log.debug("loop closures of %s: %s", session.id, err)
+        return ()
+
+
+def _stamp(stamp_ns: int) -> Timestamp:
+    return Timestamp(sec=stamp_ns // 1_000_000_000, nsec=stamp_ns % 1_000_000_000)
+
+
+def _yaw(theta_rad: float) -> Quaternion:
+    return Quaternion(x=0.0, y=0.0, z=math.sin(theta_rad / 2.0), w=math.cos(theta_rad / 2.0))
+
+
+def _color(rgba: tuple[float, float, float, float]) -> Color:
+    return Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+
+
+def grid_message(image: Any, stamp_ns: int) -> Grid:
+    """A `GridImage` as a `foxglove.Grid` in the map frame: one INT8 field `occupancy` (-1
+    unknown, 0..100 percent), row 0 at the lowest y like the image and nav_msgs/OccupancyGrid."""
+    occupancy = np.ascontiguousarray(image.occupancy, dtype=np.int8)
+    width = int(occupancy.shape[1])
+    return Grid(
+        timestamp=_stamp(stamp_ns),
+        frame_id=MAP_FRAME,
+        pose=FgPose(
+            position=Vector3(x=float(image.origin_x_m), y=float(image.origin_y_m), z=0.0),
+            orientation=Quaternion(w=1.0),
+        ),
+        column_count=int(width),
+        cell_size=Vector2(x=float(image.resolution_m), y=float(image.resolution_m)),
+        row_stride=int(width),
+        cell_stride=1,
+        fields=[
+            PackedElementField(name="occupancy", offset=0, type=PackedElementFieldNumericType.Int8)
+        ],
+        data=occupancy.tobytes(),
+    )
+
+
+def scan_message(scan: Scan) -> LaserScan:
+    n = scan.beam_count
+    end = scan.angle_min_rad + scan.angle_increment_rad * max(n - 1, 0)
+    return LaserScan(
+        timestamp=_stamp(scan.stamp_ns),
+        frame_id=base_link(scan.robot_id),
+        pose=FgPose(position=Vector3(), orientation=Quaternion(w=1.0)),
+        start_angle=float(scan.angle_min_rad),
+        end_angle=float(end),
+        ranges=scan.ranges_m.tolist(),
+        intensities=scan.intensities.tolist() if scan.intensities is not None else [],
+    )
+
+
+def pose_message(pose: Pose) -> PoseInFrame:
+    return PoseInFrame(
+        timestamp=_stamp(pose.stamp_ns),
+        frame_id=MAP_FRAME,
+        pose=FgPose(
+            position=Vector3(x=pose.x_m, y=pose.y_m, z=0.0), orientation=_yaw(pose.theta_rad)
+        ),
+    )
+
+
+def transform_message(pose: Pose) -> FrameTransform:
+    return FrameTransform(
+        timestamp=_stamp(pose.stamp_ns),
+        parent_frame_id=MAP_FRAME,
+        child_frame_id=base_link(pose.robot_id),
+        translation=Vector3(x=pose.x_m, y=pose.y_m, z=0.0),
+        rotation=_yaw(pose.theta_rad),
+    )
+
+
+def trajectory_message(
+    poses: Sequence[Pose],
+    closures: Sequence[tuple[tuple[float, float], tuple[float, float]]],
+    stamp_ns: int,
+) -> SceneUpdate:
+    step = max(1, math.ceil(len(poses) / MAX_TRAJECTORY_POINTS))
+    picked = list(poses[::step])
+    if poses and picked[-1] is not poses[-1]:
+        picked.append(poses[-1])
+    lines = [
+        LinePrimitive(
+            type=LinePrimitiveLineType.LineStrip,
+            pose=FgPose(position=Vector3(), orientation=Quaternion(w=1.0)),
+            thickness=2.0,
+            scale_invariant=True,
+            points=[Point3(x=p.x_m, y=p.y_m, z=0.0) for p in picked],
+            color=_color(TRAJECTORY_RGBA),
+        )
+    ]
+    if closures:
+        lines.append(
+            LinePrimitive(
+                type=LinePrimitiveLineType.LineList,
+                pose=FgPose(position=Vector3(), orientation=Quaternion(w=1.0)),
+                thickness=2.0,
+                scale_invariant=True,
+                points=[Point3(x=x, y=y, z=0.0) for pair in closures for (x, y) in pair],
+                color=_color(LOOP_CLOSURE_RGBA),
+            )
+        )
+    return SceneUpdate(
+        entities=[
+            SceneEntity(
+                timestamp=_stamp(stamp_ns), frame_id=MAP_FRAME, id="trajectory", lines=lines
+            )
+        ]
+    )
+
+
+@dataclass
+class _Robot:
+    """One robot's channels and what the publisher thread has sent of it."""
+
+    robot_id: str
+    map: GridChannel
+    scan: LaserScanChannel
+    pose: PoseInFrameChannel
+    trajectory: SceneUpdateChannel
+    session_id: str = ""
+    session: Any = None  # the _Session the topics follow (set by the publisher thread)
+    latest_scan: Scan | None = None  # guarded by FoxgloveView._lock
+    poses: deque[Pose] = field(default_factory=lambda: deque(maxlen=MAX_POSES_PER_TICK))
+    scan_sent: Scan | None = None
+    scan_sent_s: float = -math.inf
+    map_sent_s: float = -math.inf
+    map_sent: tuple[str, int] | None = None  # (session, revision) of the last map sent
+    trajectory_sent_s: float = -math.inf
+    trajectory_sent_len: int = -1
+
+    def channels(self) -> tuple[Any, ...]:
+        return (self.map, self.scan, self.pose, self.trajectory)
+
+
+@dataclass
+class ViewCounters:
+    grids: int = 0
+    scans: int = 0
+    poses: int = 0
+    trajectories: int = 0
+    errors: int = 0
+
+
+class _Listener(ServerListener):
+    """The SDK's server callbacks (on its own thread): note which topics gained a subscriber."""
+
+    def __init__(self, view: FoxgloveView) -> None:
+        self._view = view
+
+    def on_subscribe(self, client: Any, channel: Any) -> None:
+        self._view._subscribed(str(channel.topic))
+
+
+class FoxgloveView:
+    """The Foxglove WebSocket server and its publisher thread; `observe` is the ingest hook."""
+
+    def __init__(
+        self,
+        sessions: SessionsSource,
+        *,
+        host: str = "127.0.0.1",
+        port: int = 8765,
+        loop_closures: LoopClosureSource = session_loop_closures,
+        name: str = "mapping-service",
+    ) -> None:
+        self._sessions = sessions
+        self._host = host
+        self._requested_port = port
+        self._loop_closures = loop_closures
+        self._name = name
+        self._context = foxglove.Context()
+        self._server: Any = None
+        self._tf: FrameTransformsChannel | None = None
+        self._robots: dict[str, _Robot] = {}
+        self._lock = threading.Lock()
+        self._fresh_topics: set[str] = set()  # subscribed since the last pass (guarded)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.counters = ViewCounters()
+
+    # -- lifecycle -----------------------------------------------------------------------
+
+    def start(self) -> None:
+        try:
+            self._server = foxglove.start_server(
+                name=self._name,
+                host=self._host,
+                port=self._requested_port,
+                context=self._context,
+                server_listener=_Listener(self),
+            )
+        except Exception as err:  # the SDK raises a RuntimeError subclass for a busy port
+            raise OSError(f"cannot listen on {self._host}:{self._requested_port}: {err}") from err
+        self._tf = FrameTransformsChannel("/tf", context=self._context)
+        self._thread = threading.Thread(target=self._run, name="foxglove", daemon=True)
+        self._thread.start()
+        log.info("Foxglove WebSocket on %s", self.url)
+
+    @property
+    def port(self) -> int:
+        return int(self._server.port) if self._server is not None else 0
+
+    @property
+    def url(self) -> str:
+        shown = self._host if self._host not in ("0.0.0.0", "::", "") else "127.0.0.1"
+        if ":" in shown:
+            shown = f"[{shown}]"
+        return f"ws://{shown}:{self.port}"
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+        with self._lock:
+            robots = list(self._robots.values())
+            self._robots.clear()
+        for robot in robots:
+            for channel in robot.channels():
+                channel.close()
+        if self._tf is not None:
+            self._tf.close()
+            self._tf = None
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
+
+    # -- ingest side (any worker thread; never blocks, never encodes) -----------------------
+
+    def observe(self, scan: Scan, pose: Pose | None) -> None:
+        robot = self._robots.get(scan.robot_id)  # dict reads are atomic
+        if robot is None:
+            return  # channels appear on the publisher's next pass over the sessions
+        with self._lock:
+            robot.latest_scan = scan
+            if pose is not None:
+                robot.poses.append(pose)
+
+    def _subscribed(self, topic: str) -> None:
+        with self._lock:
+            self._fresh_topics.add(topic)
+
+    # -- publisher thread ------------------------------------------------------------------
+
+    def _run(self) -> None:
+        next_sessions_s = 0.0
+        while not self._stop.wait(TICK_S):
+            now_s = time.monotonic()
+            try:
+                if now_s >= next_sessions_s:
+                    self._sync_robots()
+                    next_sessions_s = now_s + MAP_PERIOD_S
+                self._publish(now_s)
+            except Exception:  # the view must keep running; the service does not depend on it
+                self.counters.errors += 1
+                if self.counters.errors == 1 or math.log2(self.counters.errors).is_integer():
+                    log.exception("Foxglove pass failed (%d so far)", self.counters.errors)
+
+    def _sync_robots(self) -> None:
+        """Channels for every robot that has a session (its active one, else its latest)."""
+        latest: dict[str, _Session] = {}
+        for session in self._sessions():
+            current = latest.get(session.robot_id)
+            if current is None or session.is_active or not current.is_active:
+                latest[session.robot_id] = session
+        for robot_id, gone in self._robots.items():
+            if robot_id not in latest:  # its sessions were deleted: nothing more to draw
+                gone.session = None
+        for robot_id, session in latest.items():
+            robot = self._robots.get(robot_id)
+            if robot is None:
+                robot = self._new_robot(robot_id)
+                with self._lock:
+                    self._robots[robot_id] = robot
+            robot.session = session
+            if robot.session_id != session.id:
+                robot.session_id = session.id
+                robot.map_sent = None
+                robot.trajectory_sent_len = -1
+
+    def _new_robot(self, robot_id: str) -> _Robot:
+        ctx = self._context
+        return _Robot(
+            robot_id=robot_id,
+            map=GridChannel(f"/{robot_id}/map", context=ctx),
+            scan=LaserScanChannel(f"/{robot_id}/scan", context=ctx),
+            pose=PoseInFrameChannel(f"/{robot_id}/pose", context=ctx),
+            trajectory=SceneUpdateChannel(f"/{robot_id}/trajectory", context=ctx),
+        )
+
+    def _publish(self, now_s: float) -> None:
+        tf = self._tf
+        for robot in list(self._robots.values()):
+            with self._lock:
+                scan = robot.latest_scan
+                poses = list(robot.poses)
+                robot.poses.clear()
+            if (
+                scan is not None
+                and scan is not robot.scan_sent
+                and now_s - robot.scan_sent_s >= SCAN_PERIOD_S
+            ):
+                robot.scan_sent = scan
+                robot.scan_sent_s = now_s
+                if robot.scan.has_sinks():
+                    robot.scan.log(scan_message(scan), log_time=scan.stamp_ns)
+                    self.counters.scans += 1
+            if poses:
+                if robot.pose.has_sinks():
+                    for pose in poses:
+                        robot.pose.log(pose_message(pose), log_time=pose.stamp_ns)
+                    self.counters.poses += len(poses)
+                if tf is not None and tf.has_sinks():
+                    last = poses[-1]
+                    tf.log(
+                        FrameTransforms(transforms=[transform_message(last)]),
+                        log_time=last.stamp_ns,
+                    )
+            self._publish_map(robot, now_s)
+
+    def _publish_map(self, robot: _Robot, now_s: float) -> None:
+        map_wanted = robot.map.has_sinks()
+        trajectory_wanted = robot.trajectory.has_sinks()
+        with self._lock:  # a new subscriber gets the map and the trajectory at once
+            if self._fresh_topics:
+                if robot.map.topic() in self._fresh_topics:
+                    robot.map_sent = None
+                if robot.trajectory.topic() in self._fresh_topics:
+                    robot.trajectory_sent_len = -1
+                self._fresh_topics.discard(robot.map.topic())
+                self._fresh_topics.discard(robot.trajectory.topic())
+        if not map_wanted and not trajectory_wanted:
+            return
+        session: _Session | None = robot.session
+        if session is None:
+            return
+        stamp_ns = time.time_ns()
+        if map_wanted and (
+            robot.map_sent is None
+            or (
+                robot.map_sent != (session.id, session.map_revision)
+                and now_s - robot.map_sent_s >= MAP_PERIOD_S
+            )
+        ):
+            revision = session.map_revision
+            image = session.map_image().image
+            if image.width and image.height:  # before the first keyframe there is no map
+                robot.map.log(grid_message(image, stamp_ns), log_time=stamp_ns)
+                robot.map_sent = (session.id, revision)
+                robot.map_sent_s = now_s
+                self.counters.grids += 1
+        if trajectory_wanted and (
+            robot.trajectory_sent_len < 0 or now_s - robot.trajectory_sent_s >= MAP_PERIOD_S
+        ):
+            poses = session.trajectory()
+            if len(poses) != robot.trajectory_sent_len:
+                robot.trajectory.log(
+                    trajectory_message(poses, self._loop_closures(session), stamp_ns),
+                    log_time=stamp_ns,
+                )
+                robot.trajectory_sent_len = len(poses)
+                robot.trajectory_sent_s = now_s
+                self.counters.trajectories += 1
