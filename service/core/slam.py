@@ -40,6 +40,7 @@ class SlamParams:
     heading_priors: bool = True  # the walls' absolute heading as a unary factor per node
     heading_prior_sigma_deg: float = 0.3  # its σ (the front end's anchored heading)
     max_query_range_m: float = 30.0  # a node's points beyond this are not kept
+    update_every_nodes: int = 5  # iSAM2 steps this often (and after every closure)
     graph: GraphParams = field(default_factory=GraphParams)
     submaps: SubmapParams = field(default_factory=SubmapParams)
     loops: LoopParams = field(default_factory=LoopParams)
@@ -49,8 +50,9 @@ class SlamParams:
 class LoopStats:
     accepted: int = 0
     rejected: Counter[str] = field(default_factory=Counter)
-    search_s: float = 0.0
-    optimise_s: float = 0.0
+    search_s: float = 0.0  # loop search
+    optimise_s: float = 0.0  # iSAM2 and the final batch
+    total_s: float = 0.0  # all of the back end: nodes, submaps, search, optimisation
     closures: list[LoopResult] = field(default_factory=list)  # the accepted ones
 
 
@@ -83,7 +85,9 @@ class SlamSession:
     def observe(self, scan: LaserScan, estimate: PoseEstimate) -> None:
         """The back end's half of `process`, for callers that time the front end alone."""
         if self.params.loop_closure and estimate.is_keyframe:
+            t0 = time.perf_counter()
             self._add_node(scan, estimate)
+            self.stats.total_s += time.perf_counter() - t0
         self._scan_node.append(len(self.node_frontend) - 1)
         self._scan_frontend.append(estimate.pose)
 
@@ -114,9 +118,10 @@ class SlamSession:
         self.node_frontend.append(pose)
         self.node_points.append(kept)
         self.submaps.add_node(node, pose, kept, scan)
-        t0 = time.perf_counter()
-        self.graph.update()
-        self.stats.optimise_s += time.perf_counter() - t0
+        if node % self.params.update_every_nodes == 0:
+            t0 = time.perf_counter()
+            self.graph.update()
+            self.stats.optimise_s += time.perf_counter() - t0
         if node % self.params.loops.search_every_nodes == 0:
             t0 = time.perf_counter()
             self._search(node)
@@ -182,6 +187,7 @@ class SlamSession:
             t0 = time.perf_counter()
             self._optimised = self.graph.optimize_batch()
             self.stats.optimise_s += time.perf_counter() - t0
+            self.stats.total_s += time.perf_counter() - t0
         return self.corrected_poses()
 
     def node_poses(self) -> list[Pose2D]:

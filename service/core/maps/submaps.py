@@ -12,10 +12,8 @@ reach) is scored at the field's prior, its mean over observed space: the chance 
 lands on a wall where nothing is known. Scoring it as a miss (0) makes a closure slide to the
 placement that overlaps the submap most (it folded ACES' central corridor by 4 m in a first
 attempt); leaving it out makes it slide to where its misfits fall outside (0.2 m along a
-synthetic corridor in a second one). It is the
-maximum of Gaussian bumps, which is separable (exp(-(dx²+dy²)) = exp(-dx²)·exp(-dy²)), so it is
-two 1-D maximum filters. A second, coarse field is its sliding maximum over a block of
-`coarse_factor` cells: a score on it bounds every fine score inside that block (branch and bound).
+synthetic corridor in a second one). The field is the maximum of Gaussian bumps, each stamped
+around its hit. A second, coarse field is its sliding maximum over a block of `coarse_factor` cells: a score on it bounds every fine score inside that block (branch and bound).
 """
 
 from __future__ import annotations
@@ -37,6 +35,7 @@ class SubmapParams:
     nodes_per_submap: int = 20  # nodes (keyframes) in a finished submap; half of them overlap
     resolution_m: float = 0.05  # cell of the likelihood field
     hit_sigma_m: float = 0.07  # width of a hit's Gaussian in the field
+    observed_resolution_m: float = 0.2  # cell of the ray-cast mask of observed space
     coarse_factor: int = 4  # coarse field block (cells): 0.2 m at 0.05 m
     max_points_per_node: int = 400  # a node's scan points kept (voxel-thinned first)
     voxel_m: float = 0.05  # thinning of the points kept per node
@@ -76,23 +75,6 @@ def voxel_thin(points_m: FloatArray, voxel_m: float) -> FloatArray:
     return out
 
 
-def _max_filter_weighted(grid: F32Array, weights: F32Array, axis: int) -> F32Array:
-    """out[i] = max_k weights[k] · grid[i + k - r] along `axis` (zero padding)."""
-    r = (weights.shape[0] - 1) // 2
-    out: F32Array = grid * weights[r]
-    n = grid.shape[axis]
-    for k in range(1, r + 1):
-        if k >= n:
-            break
-        w = weights[r + k]
-        lo = [slice(None)] * 2
-        hi = [slice(None)] * 2
-        lo[axis], hi[axis] = slice(0, n - k), slice(k, n)
-        np.maximum(out[tuple(lo)], w * grid[tuple(hi)], out=out[tuple(lo)])
-        np.maximum(out[tuple(hi)], w * grid[tuple(lo)], out=out[tuple(hi)])
-    return out
-
-
 def _sliding_max(grid: F32Array, k: int) -> F32Array:
     """out[i, j] = max of grid[i:i+k, j:j+k] (clipped at the far edges)."""
     out = grid.copy()
@@ -122,27 +104,37 @@ def likelihood_field(
     hi = np.floor(points_m.max(axis=0) / res) + radius + 1
     dense = None
     if observed is not None:
-        dense, ci0, cj0 = observed.log_odds()
+        # The observed grid is coarser by an integer factor: its cells, repeated, on ours.
+        k = max(1, round(observed.resolution_m / res))
+        coarse_seen, ci0, cj0 = observed.log_odds()
+        dense = np.repeat(np.repeat(coarse_seen != 0.0, k, axis=0), k, axis=1)
+        ci0, cj0 = ci0 * k, cj0 * k
         if dense.size:
             lo = np.minimum(lo, (cj0 - radius, ci0 - radius))
             hi = np.maximum(hi, (cj0 + dense.shape[1] + radius, ci0 + dense.shape[0] + radius))
     w, h = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
-    occ = np.zeros((h, w), dtype=np.float32)
     j = (np.floor(points_m[:, 0] / res) - lo[0]).astype(np.int64)
     i = (np.floor(points_m[:, 1] / res) - lo[1]).astype(np.int64)
-    occ[i, j] = 1.0
-    d = np.arange(-radius, radius + 1, dtype=np.float32) * np.float32(res)
-    weights = np.exp(-0.5 * (d / np.float32(params.hit_sigma_m)) ** 2).astype(np.float32)
-    fine = _max_filter_weighted(_max_filter_weighted(occ, weights, 0), weights, 1)
+    # Each hit stamps its Gaussian (cell-centred distances) on the field: work in the points,
+    # not in the grid, which is mostly empty.
+    d = np.arange(-radius, radius + 1, dtype=np.int64)
+    di, dj = np.meshgrid(d, d, indexing="ij")
+    bump = np.exp(-0.5 * ((di**2 + dj**2) * res**2) / params.hit_sigma_m**2).astype(np.float32)
+    fine = np.zeros((h, w), dtype=np.float32)
+    cells = np.unique(i * w + j)
+    ci, cj = cells // w, cells % w
+    np.maximum.at(
+        fine,
+        ((ci[:, None] + di.ravel()[None, :]).ravel(), (cj[:, None] + dj.ravel()[None, :]).ravel()),
+        np.broadcast_to(bump.ravel(), (cells.shape[0], bump.size)).ravel(),
+    )
     coarse = _sliding_max(fine, params.coarse_factor)
     if dense is not None and dense.size:
         seen = np.zeros((h, w), dtype=np.float32)
         r0, c0 = int(ci0 - lo[1]), int(cj0 - lo[0])
-        seen[r0 : r0 + dense.shape[0], c0 : c0 + dense.shape[1]] = dense != 0.0
-        np.maximum(seen, occ, out=seen)
-        # A hit just beyond the last observed cell is still a hit: grow the mask by the radius.
-        box = np.ones(2 * radius + 1, dtype=np.float32)
-        known = _max_filter_weighted(_max_filter_weighted(seen, box, 0), box, 1)
+        seen[r0 : r0 + dense.shape[0], c0 : c0 + dense.shape[1]] = dense
+        # A hit just beyond the last observed cell is still a hit: its bump counts as observed.
+        known = np.maximum(seen, (fine > 1e-3).astype(np.float32))
     else:
         known = np.ones((h, w), dtype=np.float32)
     prior = float((fine * known).sum() / max(float(known.sum()), 1.0))
@@ -174,13 +166,13 @@ class Submap:
         pose_frontend: Pose2D,
         points_laser_m: FloatArray,
         scan: LaserScan | None = None,
-        resolution_m: float = 0.05,
+        observed_resolution_m: float = 0.2,
     ) -> None:
         """Add a node's points (laser frame) at its front-end pose; its rays, if `scan`."""
         rel = self.anchor_pose_frontend.between(pose_frontend)
         if scan is not None:
             if self.observed is None:
-                self.observed = OccupancyGrid(resolution_m)
+                self.observed = OccupancyGrid(observed_resolution_m)
             self.observed.integrate(scan, rel)
         c, s = math.cos(rel.theta_rad), math.sin(rel.theta_rad)
         pts = points_laser_m @ np.array([[c, s], [-s, c]]) + (rel.x_m, rel.y_m)
@@ -229,7 +221,7 @@ class SubmapBuilder:
             self._active.append(sub)
         finished = []
         for sub in self._active:
-            sub.insert(node, pose_frontend, points_laser_m, scan, self.params.resolution_m)
+            sub.insert(node, pose_frontend, points_laser_m, scan, self.params.observed_resolution_m)
         for sub in list(self._active):
             if len(sub.nodes) >= self.params.nodes_per_submap:
                 sub.finish(self.params)
