@@ -162,6 +162,7 @@ def run_runtime(
         sock = bind_socket(settings.http.host, settings.http.port)
         try:
             with runtime_factory(settings) as runtime:
+                runtime.http_url = http_url(sock, settings.http.host)
                 return serve_http(runtime, sock, on_ready=on_ready, duration_s=duration_s)
         finally:
             sock.close()

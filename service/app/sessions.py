@@ -156,7 +156,7 @@ class MappingSession:
             self._store.append(payload)  # durable before it counts
             self._records += 1
             self.scans_accepted += 1
-            pose = self._estimate(scan)
+            pose = self._estimate(scan, payload)
             encoded: bytes | None = None
             if pose is not None:
                 encoded = encode_pose(pose)
@@ -167,10 +167,10 @@ class MappingSession:
                 self._write_checkpoint()
             return Ingested(True, pose, encoded)
 
-    def _estimate(self, scan: Scan) -> Pose | None:
+    def _estimate(self, scan: Scan, payload: bytes | None = None) -> Pose | None:
         """Run estimator and grid on `scan` (lock held). None if the estimator failed."""
         try:
-            mapped = self._map(scan)
+            mapped = self._map(scan, payload)
         except Exception:
             # The estimator promises not to raise on bad data; if it does anyway, the scan stays
             # recorded (a replay meets the same failure) and the session carries on.
@@ -197,14 +197,14 @@ class MappingSession:
             flags=PoseFlag(mapped.flags),
         )
 
-    def _map(self, scan: Scan) -> MappedScan:
+    def _map(self, scan: Scan, payload: bytes | None) -> MappedScan:
         """The mapper's answer; a lost mapper (its process died) is rebuilt first (lock held)."""
         try:
-            return self._mapper.map_scan(scan)
+            return self._mapper.map_scan(scan, payload)
         except MapperLostError as err:
             log.error("session %s: %s; rebuilding its map from the recording", self.id, err)
             self._rebuild_mapper()
-            return self._mapper.map_scan(scan)
+            return self._mapper.map_scan(scan, payload)
 
     def _rebuild_mapper(self) -> None:
         """A new mapper with the state of every record before the current one (lock held):
@@ -223,9 +223,8 @@ class MappingSession:
             if index < skip or record.kind != "scan":
                 continue
             try:
-                self._mapper.map_scan(
-                    decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
-                )
+                scan = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
+                self._mapper.map_scan(scan, record.payload)
             except DecodeError:
                 continue
             replayed += 1
@@ -313,7 +312,7 @@ class MappingSession:
                             self._poses.append(pending)
                         scan = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
                         self.scans_accepted += 1
-                        pending = self._estimate(scan)
+                        pending = self._estimate(scan, record.payload)
                     elif kind == "pose":
                         recorded = decode_pose(record.payload)
                         if pending is not None and not _same_pose(pending, recorded):

@@ -10,13 +10,16 @@ import argparse
 import ipaddress
 import logging
 import os
+import re
+import socket
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
 
-from clients.keyexpr import DEFAULT_PREFIX, InvalidPrefixError, check_prefix
+from clients.fleet import InvalidInstanceIdError, check_instance_id
+from clients.keyexpr import DEFAULT_PREFIX, InvalidPrefixError, check_prefix, scan_wildcard
 from service.app.errors import SettingsError
 
 log = logging.getLogger(__name__)
@@ -82,6 +85,21 @@ class IngestSettings(_Frozen):
         return 2 * self.mapper_processes if self.mapper_processes else 1
 
 
+class FleetSettings(_Frozen):
+    # Robot-id patterns this instance maps (`warehouse-a-*`; `*` = every robot). Instances that
+    # split a fleet give each a disjoint set; an overlap is reported as a conflict.
+    robots: tuple[str, ...] = ("*",)
+    # The instance's name on Zenoh (`<prefix>/_instances/<id>`); default: host name and port.
+    instance_id: str | None = None
+    poll_s: float = Field(default=1.0, gt=0.0, description="period of the fleet conflict check")
+
+    def effective_instance_id(self, http_port: int) -> str:
+        if self.instance_id is not None:
+            return self.instance_id
+        host = re.sub(r"[^A-Za-z0-9_.\-]", "-", socket.gethostname()).lstrip("_.-") or "host"
+        return f"{host[:50]}-{http_port}"
+
+
 class SecuritySettings(_Frozen):
     token: SecretStr | None = None
     allow_insecure_bind: bool = False
@@ -93,6 +111,7 @@ class ServiceSettings(_Frozen):
     storage: StorageSettings = Field(default_factory=StorageSettings)
     ingest: IngestSettings = Field(default_factory=IngestSettings)
     security: SecuritySettings = Field(default_factory=SecuritySettings)
+    fleet: FleetSettings = Field(default_factory=FleetSettings)
 
     @property
     def token(self) -> str | None:
@@ -104,7 +123,10 @@ class ServiceSettings(_Frozen):
         """Refuse settings that are unsafe or unusable; raises `SettingsError` with the reason."""
         try:
             check_prefix(self.zenoh.prefix)
-        except InvalidPrefixError as err:
+            for pattern in self.fleet.robots:
+                scan_wildcard(self.zenoh.prefix, pattern)
+            check_instance_id(self.fleet.effective_instance_id(self.http.port))
+        except (InvalidPrefixError, InvalidInstanceIdError) as err:
             raise SettingsError(str(err)) from err
         if not is_loopback_host(self.http.host) and self.token is None:
             if not self.security.allow_insecure_bind:
@@ -177,6 +199,15 @@ def build_settings(
             if getattr(args, "mapper_processes", None) is not None
             else from_env(mapper_processes="MAPPER_PROCESSES")
         ),
+        "fleet": {
+            **({"robots": tuple(args.robots)} if getattr(args, "robots", None) else {}),
+            **(
+                {"instance_id": args.instance_id}
+                if getattr(args, "instance_id", None)
+                else from_env(instance_id="INSTANCE_ID")
+            ),
+            **from_env(poll_s="FLEET_POLL_S"),
+        },
         "security": {
             "token": getattr(args, "token", None) or _env(env, "TOKEN"),
             "allow_insecure_bind": bool(getattr(args, "allow_insecure_bind", False)),

@@ -46,10 +46,12 @@ SessionDep = Annotated[MappingSession, Depends(get_session)]
     dependencies=Control,
     summary="Start a mapping session",
     description="Start mapping `robot_id`: its scans are recorded and mapped from now on. "
-    "One active session per robot (409 otherwise).",
+    "One active session per robot (409 otherwise), on an instance whose robot patterns match "
+    "it and not while another instance maps it (409).",
     responses=errors(401, 409, 413, 422),
 )
-def create_session(body: SessionCreate, sessions: Sessions) -> Session:
+def create_session(body: SessionCreate, sessions: Sessions, runtime: Runtime) -> Session:
+    runtime.check_claim(body.robot_id)
     session = sessions.create(body.robot_id, body.resolution_m, body.use_odometry)
     return Session.of(session.info())
 
