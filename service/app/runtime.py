@@ -60,7 +60,9 @@ class MappingRuntime:
             render_map_files=render.map_files,
         )
         prefix = settings.zenoh.prefix
-        self.fanout = PoseFanout(prefix, self.metrics, settings.http.sse_queue_depth)
+        self.fanout = PoseFanout(
+            prefix, self.metrics, settings.http.sse_queue_depth, settings.http.sse_interval_s
+        )
         self.ingest = Ingest(
             prefix, self.sessions, self.fanout.publish, self.metrics, settings.ingest
         )
