@@ -106,7 +106,7 @@ class PoseFanout:
         prefix: str,
         metrics: Metrics,
         stream_queue_depth: int,
-        stream_min_interval_s: float = 0.1,
+        stream_min_interval_s: float = 0.2,
     ) -> None:
         self._prefix = prefix
         self._metrics = metrics

@@ -41,7 +41,7 @@ class HttpSettings(_Frozen):
     # Poses that arrive within this interval go to a browser in one write: with 1,000 streams
     # the event loop makes at most 1,000 writes per interval, however fast the robots are.
     sse_interval_s: float = Field(
-        default=0.1, ge=0.0, le=5.0, description="shortest time between two writes to a stream"
+        default=0.2, ge=0.0, le=5.0, description="shortest time between two writes to a stream"
     )
 
 

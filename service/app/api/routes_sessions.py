@@ -238,7 +238,7 @@ def sse_pose_frame(pose: Pose) -> bytes:
     summary="Live poses (Server-Sent Events)",
     description="`event: pose` with a `PoseView` JSON as `data` for every new pose, starting "
     "with the current one. Poses that arrive together are written together (at most one write "
-    "per `MAPPING_SSE_INTERVAL_S`, default 0.1 s). A slow reader loses the oldest poses "
+    "per `MAPPING_SSE_INTERVAL_S`, default 0.2 s). A slow reader loses the oldest poses "
     "(counted in /metrics), never slows the service. Comment lines (`: ping`) keep idle "
     "connections open.",
     responses={
