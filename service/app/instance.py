@@ -156,8 +156,14 @@ class FleetMember:
             return self._view
 
     def active_elsewhere(self, robot_id: str) -> str | None:
-        """Another instance with an active session for `robot_id` (as last seen), if any."""
-        for info in self.last_view().instances:
+        """Another instance with an active session for `robot_id`, if any: asked now (the
+        last periodic view when the query fails)."""
+        try:
+            view = self.query()
+        except Exception as err:
+            log.debug("fleet: query failed, using the last view: %s", err)
+            view = self.last_view()
+        for info in view.instances:
             if info.instance_id != self.instance_id and robot_id in info.active_robots:
                 return info.instance_id
         return None
