@@ -761,7 +761,8 @@ def render_fleet_only(res: dict[str, Any], doc_path: Path) -> str:
         (
             f"Machine: {res['machine'].get('cpu_model', '?')}, "
             f"{res['machine'].get('cores', '?')} cores, load average at the start "
-            f"{res['machine'].get('load_average_at_start', '?')}. Written by `python -m bench --fleet-only`."
+            f"{res['machine'].get('load_average_at_start', '?')}. "
+            "Written by `python -m bench --fleet-only`."
         ),
         "",
         "## Targets",
