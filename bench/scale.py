@@ -488,7 +488,8 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
 
         svc = psutil.Process(service.pid)
         load_ps = [psutil.Process(p.pid) for p in load_procs]
-        sub_ps = [psutil.Process(sub.pid)]
+        # The fan-out clients count as subscribers: CPU on the same cores, not the service's.
+        sub_ps = [psutil.Process(sub.pid)] + ([psutil.Process(fan.pid)] if fan else [])
         metrics0 = _scrape(client)
         result["loadavg_before"] = list(os.getloadavg())
         cpu0 = _cpu_snapshot(svc, load_ps, sub_ps)
