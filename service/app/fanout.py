@@ -8,10 +8,10 @@ subscribers:
 - browser streams: the worker appends the pose to one pending list and schedules one flush on
   the HTTP event loop per burst (not per pose, not per stream). The loop encodes each pose's
   SSE frame once and appends the same bytes to each stream's bounded buffer (full: the oldest
-  frame is dropped and counted, exactly once per pose lost). A stream writes whatever has
-  accumulated at most every `min_interval_s`, so 1,000 streams cost the loop at most 1,000
-  writes per interval, not one per pose per stream, and a stalled browser only fills its own
-  buffer.
+  frame is dropped and counted, exactly once per pose lost). One timer per `min_interval_s`
+  wakes the streams that have frames, and each writes all of them at once: 1,000 streams cost
+  the loop at most 1,000 writes per interval, not one per pose per stream, and a stalled
+  browser only fills its own buffer.
 """
 
 from __future__ import annotations
@@ -51,16 +51,17 @@ class PoseStream:
 
     session_id: str
     depth: int  # frames buffered at most (oldest dropped first)
-    min_interval_s: float
     frames: deque[bytes] = field(default_factory=deque)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     ended: bool = False
+    ping: bool = False  # a keep-alive comment is due
     dropped: int = 0  # poses this stream lost because it was not read in time
     skip: tuple[int, int] | None = None  # (seq, stamp_ns) already sent when the stream opened
-    _last_write: float = 0.0
+    last_write: float = field(default_factory=time.monotonic)
 
     def offer(self, pose: Pose, frame: bytes) -> bool:
-        """Buffer `frame` (of `pose`); False when the oldest frame had to go to make room."""
+        """Buffer `frame` (of `pose`); False when the oldest frame had to go to make room.
+        The stream is woken by the fan-out's tick, not here."""
         if self.skip is not None:
             if (pose.seq, pose.stamp_ns) == self.skip:
                 return True
@@ -70,7 +71,6 @@ class PoseStream:
             self.frames.popleft()
             self.dropped += 1
         self.frames.append(frame)
-        self.wake.set()
         return not lost
 
     def end(self) -> None:
@@ -78,21 +78,22 @@ class PoseStream:
         self.wake.set()
 
     async def next_chunk(self) -> bytes | None:
-        """Every frame buffered since the last chunk, as one write; a keep-alive comment after
-        `KEEPALIVE_S` of silence; None once ended and emptied."""
-        wait_s = self.min_interval_s - (time.monotonic() - self._last_write)
-        if wait_s > 0 and not self.ended:
-            await asyncio.sleep(wait_s)  # coalesce: at most one write per interval
-        if not self.frames and not self.ended:
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self.wake.wait(), KEEPALIVE_S)
-        self.wake.clear()
-        self._last_write = time.monotonic()
-        if self.frames:
-            chunk = b"".join(self.frames)
-            self.frames.clear()
-            return chunk
-        return None if self.ended else KEEPALIVE_FRAME
+        """Every frame buffered since the last chunk, as one write; a keep-alive comment when
+        one is due; None once ended and emptied."""
+        while True:
+            if self.frames:
+                chunk = b"".join(self.frames)
+                self.frames.clear()
+                self.last_write = time.monotonic()
+                return chunk
+            if self.ended:
+                return None
+            if self.ping:
+                self.ping = False
+                self.last_write = time.monotonic()
+                return KEEPALIVE_FRAME
+            await self.wake.wait()
+            self.wake.clear()
 
 
 @dataclass
@@ -113,6 +114,9 @@ class PoseFanout:
         self._depth = stream_queue_depth
         self._min_interval_s = stream_min_interval_s
         self._encode_frame: FrameEncoder | None = None
+        self._due: set[PoseStream] = set()  # streams with frames, woken at the next tick
+        self._tick_pending = False
+        self._keepalive: asyncio.TimerHandle | None = None
         self._pending: list[Pose] = []  # poses for the streams, not yet on the loop
         self._pending_lock = threading.Lock()
         self._zenoh: zenoh.Session | None = None
@@ -149,6 +153,11 @@ class PoseFanout:
         self._loop = loop
         if encode_frame is not None:
             self._encode_frame = encode_frame
+        if loop is not None:
+            loop.call_soon_threadsafe(self._schedule_keepalive)
+        elif self._keepalive is not None:
+            self._keepalive.cancel()
+            self._keepalive = None
 
     # -- worker side (any thread) --------------------------------------------------------------
 
@@ -204,8 +213,33 @@ class PoseFanout:
             for stream in streams:
                 if not stream.offer(pose, frame):
                     lost += 1
+            self._due.update(streams)
         if lost:
             self._metrics.inc(STREAM_DROPPED, lost)
+        if self._due and not self._tick_pending:
+            # One timer for all streams: each writes at most once per interval.
+            self._tick_pending = True
+            assert self._loop is not None
+            self._loop.call_later(self._min_interval_s, self._tick)
+
+    def _tick(self) -> None:
+        """Wake every stream that has frames (on the loop)."""
+        self._tick_pending = False
+        due, self._due = self._due, set()
+        for stream in due:
+            stream.wake.set()
+
+    def _schedule_keepalive(self) -> None:
+        loop = self._loop
+        if loop is None or self._closed:
+            return
+        now = time.monotonic()
+        for streams in self._streams.by_session.values():
+            for stream in streams:
+                if now - stream.last_write >= KEEPALIVE_S:
+                    stream.ping = True
+                    stream.wake.set()
+        self._keepalive = loop.call_later(KEEPALIVE_S / 3, self._schedule_keepalive)
 
     def frame(self, pose: Pose) -> bytes:
         """`pose` as an SSE frame."""
@@ -215,7 +249,7 @@ class PoseFanout:
 
     def open_stream(self, session_id: str) -> PoseStream:
         """Subscribe on the event loop; pair with `close_stream` in a finally."""
-        stream = PoseStream(session_id, self._depth, self._min_interval_s)
+        stream = PoseStream(session_id, self._depth)
         if self._closed:
             stream.end()
             return stream
@@ -225,6 +259,7 @@ class PoseFanout:
 
     def close_stream(self, stream: PoseStream) -> None:
         streams = self._streams.by_session.get(stream.session_id)
+        self._due.discard(stream)
         if streams is not None and stream in streams:
             streams.discard(stream)
             self._stream_count -= 1
