@@ -113,6 +113,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--sse", type=int, default=0, help="SSE streams to open")
     parser.add_argument("--zenoh-connect", action="append", default=[])
     parser.add_argument("--zenoh-subscribers", type=int, default=0)
+    parser.add_argument(
+        "--via-router",
+        default=None,
+        metavar="ENDPOINT",
+        help="run a Zenoh router here, listening on ENDPOINT and connected to --zenoh-connect, "
+        "and connect the subscribers to it as clients (the site layout: the service then sends "
+        "each pose once, the router copies it); default: subscribers connect directly",
+    )
     parser.add_argument("--prefix", default=DEFAULT_PREFIX)
     parser.add_argument("--out", required=True, type=Path)
     args = parser.parse_args(argv)
@@ -133,8 +141,18 @@ def main(argv: Sequence[str] | None = None) -> int:
                     zenoh_seen[i] += 1
 
     try:
+        connect, mode = args.zenoh_connect, "peer"
+        if args.via_router and args.zenoh_subscribers:
+            zsessions.append(
+                zenoh.open(
+                    build_zenoh_config(
+                        mode="router", listen=[args.via_router], connect=args.zenoh_connect
+                    )
+                )
+            )
+            connect, mode = [args.via_router], "client"
         for _ in range(args.zenoh_subscribers):
-            z = zenoh.open(build_zenoh_config(connect=args.zenoh_connect))
+            z = zenoh.open(build_zenoh_config(mode=mode, connect=connect))
             zsessions.append(z)
             rings.append(z.declare_subscriber(pose_wildcard(args.prefix), RingChannel(1)))
         poller = threading.Thread(target=poll_rings, daemon=True)
@@ -176,6 +194,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 "sse_events": counts.events,
                 "sse_bytes": counts.bytes,
                 "zenoh_subscribers": args.zenoh_subscribers,
+                "zenoh_via_router": bool(args.via_router),
                 # Polls (every 0.5 s) at which a subscriber had a new pose: ~2 per second each.
                 "zenoh_polls_with_pose_min": min(zenoh_seen) if zenoh_seen else 0,
                 "zenoh_polls_with_pose_total": sum(zenoh_seen),

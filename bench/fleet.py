@@ -5,7 +5,9 @@ one `mapping-service serve --mapper-processes K`, and the fan-out benchmark.
   service's CPU (its process tree: mapper processes included), the machine's CPU and its load
   average, since this machine is shared and a busy neighbour moves every figure.
 - Fan-out: 10 robots × 40 Hz, alone and with 1,000 SSE streams and 50 Zenoh pose subscribers
-  (`bench.fanout_clients`, one process), run alternately so that the pairs share the machine's
+  (`bench.fanout_clients`, one process; the subscribers behind one Zenoh router in that
+  process, as docs/architecture.md lays out a site, so the service sends each pose once and
+  the router makes the 50 copies), run alternately so that the pairs share the machine's
   conditions. Judged on the service's per-scan time (`mapping_scan_processing_seconds`: decode,
   record, estimate, publish), the p99 scan→pose and drops.
 

@@ -745,7 +745,9 @@ def fleet_section(fleet: dict[str, Any] | None) -> list[str]:
             lines.append(
                 f"With subscribers: {fan['sse_connected']} of {fan['sse_requested']} SSE streams "
                 f"connected, {fan['sse_events']:,} pose events received by them, "
-                f"{fan['zenoh_subscribers']} Zenoh subscribers each saw new poses at "
+                f"{fan['zenoh_subscribers']} Zenoh subscribers "
+                + ("(behind one router, as in a site) " if fan.get("zenoh_via_router") else "")
+                + "each saw new poses at "
                 f"≥ {fan['zenoh_polls_with_pose_min']} polls (every 0.5 s); the service counted "
                 f"{_f(p.get('stream_poses_dropped'), 0)} stream poses dropped."
             )

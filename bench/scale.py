@@ -86,6 +86,7 @@ class ScaleConfig:
         0  # browser-like pose streams held open during the run (bench.fanout_clients)
     )
     zenoh_pose_subscribers: int = 0  # Zenoh sessions subscribed to every pose, same process
+    zenoh_via_router: bool = True  # the subscribers behind one router (in that process)
 
 
 @dataclass(slots=True)
@@ -386,6 +387,11 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
                     str(cfg.zenoh_pose_subscribers),
                     "--out",
                     str(fanout_out),
+                    *(
+                        ["--via-router", f"tcp/127.0.0.1:{free_port()}"]
+                        if cfg.zenoh_via_router
+                        else []
+                    ),
                 ],
                 work_dir,
                 stdin=subprocess.PIPE,
