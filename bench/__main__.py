@@ -25,7 +25,7 @@ from bench.common import REPO_ROOT, BenchError, machine_info, make_synthetic_run
 
 log = logging.getLogger("bench")
 
-SECTIONS = ("speed", "scale", "growth", "accuracy")
+SECTIONS = ("speed", "scale", "growth", "accuracy", "fleet")
 # Set on some processors for old OpenBLAS builds; they slow a current numpy (see
 # /work/.library/env/README.md), so the benchmark process runs without them and says so.
 OPENBLAS_VARS = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE")
@@ -44,10 +44,16 @@ class Sizes:
     scale_warmup_s: float
     scale_measure_s: float
     scale_drain_s: float
+    fleet_robots: tuple[int, ...] = (10, 25, 40)
+    fleet_warmup_s: float = 5.0
+    fleet_measure_s: float = 20.0
+    fleet_fanout_pairs: int = 2  # (without, with subscribers) pairs, alternated
 
 
 FULL = Sizes(None, "paper", 3, (1, 5, 10, 25), ("agents", "loadgen"), (10,), 5.0, 20.0, 2.0)
-QUICK = Sizes(300, "small", 2, (1, 5), ("agents", "loadgen"), (5,), 1.0, 4.0, 1.0)
+QUICK = Sizes(
+    300, "small", 2, (1, 5), ("agents", "loadgen"), (5,), 1.0, 4.0, 1.0, (10,), 2.0, 6.0, 1
+)
 
 
 def _drop_openblas_overrides() -> None:
@@ -132,6 +138,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=",".join(SECTIONS),
         help=f"comma-separated subset of {', '.join(SECTIONS)} (default: all)",
     )
+    parser.add_argument(
+        "--fleet-only",
+        action="store_true",
+        help="only the fleet section (N robots x 40 Hz, fan-out); writes bench/out/fleet.md "
+        "and leaves docs/benchmarks.md alone",
+    )
+    parser.add_argument(
+        "--mapper-processes",
+        type=int,
+        default=None,
+        metavar="K",
+        help="the service's --mapper-processes in the fleet section (default: the core count)",
+    )
     parser.add_argument("--seed", type=int, default=1, help="synthetic building (default: 1)")
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
@@ -142,6 +161,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     logging.getLogger("httpx").setLevel(logging.WARNING)  # one line per request otherwise
     sections = [s.strip() for s in args.sections.split(",") if s.strip()]
+    if args.fleet_only:
+        sections = ["fleet"]
     unknown = set(sections) - set(SECTIONS)
     if unknown:
         parser.error(f"unknown sections: {', '.join(sorted(unknown))}")
@@ -197,8 +218,32 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     if "accuracy" in sections:
         res["accuracy"] = _timed("accuracy", lambda: run_accuracy(args.quick, args.out))
+    if "fleet" in sections:
+        from bench.fleet import run_fleet
+
+        res["fleet"] = _timed(
+            "fleet",
+            lambda: run_fleet(
+                sizes.fleet_robots,
+                mapper_processes=args.mapper_processes or os.cpu_count() or 1,
+                warmup_s=sizes.fleet_warmup_s,
+                measure_s=sizes.fleet_measure_s,
+                work_dir=args.out / "fleet",
+                fanout_pairs_count=sizes.fleet_fanout_pairs,
+            ),
+        )
+        res["fleet"]["loadavg_at_end"] = list(os.getloadavg())
 
     res["wall_s"] = time.monotonic() - t_start
+    if args.fleet_only:
+        from bench.report import render_fleet_only
+
+        (args.out / "fleet.json").write_text(
+            json.dumps(_clean_nan(res), indent=1, default=_json_default)
+        )
+        render_fleet_only(res, args.out / "fleet.md")
+        log.info("wrote %s (%.1f s)", args.out / "fleet.md", res["wall_s"])
+        return 1 if "error" in res["fleet"] else 0
     (args.out / "results.json").write_text(
         json.dumps(_clean_nan(res), indent=1, default=_json_default)
     )

@@ -647,6 +647,137 @@ def _accuracy_section(accuracy: dict[str, Any] | None, img_dir: Path, img_rel: s
     return lines
 
 
+def _fleet_row(p: dict[str, Any], label: str) -> list[str]:
+    if "error" in p:
+        return [label, str(p["robots"]), f"failed: {p['error']}", "", "", "", "", "", "", ""]
+    load = p.get("loadavg_before") or [math.nan]
+    return [
+        label,
+        str(p["robots"]),
+        f"{p['dropped']:,} of {p['scans_published']:,}",
+        _f(p["latency_p50_ms"], 1),
+        _f(p["latency_p99_ms"], 1),
+        _f(p.get("scan_processing_ms_mean"), 2),
+        _f(p["service_cpu_pct"], 0),
+        _f(p["machine_busy_pct"], 0),
+        _f(load[0], 1),
+        _f(p["publish_rate_min_robot_hz"], 1),
+    ]
+
+
+FLEET_HEADER = [
+    "run",
+    "robots × 40 Hz",
+    "dropped",
+    "p50 ms",
+    "p99 ms",
+    "per-scan ms",
+    "service CPU %",
+    "machine busy %",
+    "load avg 1 min",
+    "slowest robot Hz",
+]
+
+
+def fleet_section(fleet: dict[str, Any] | None) -> list[str]:
+    lines = ["", "## 5. A fleet on one box", ""]
+    if not fleet:
+        return [*lines, "Not run."]
+    if "error" in fleet:
+        return [*lines, f"Not measured: {fleet['error']}"]
+    lines += [
+        (
+            "One `bench.loadgen` process publishes N robots' scans at 40 Hz each into one "
+            f"`mapping-service serve --mapper-processes {fleet['mapper_processes']}` on this "
+            f"{fleet['cores']}-core machine; a separate subscriber process times scan→pose. "
+            f"Warm-up {fleet['warmup_s']:g} s, window {fleet['measure_s']:g} s. *Service CPU* is "
+            "its process tree (mapper processes included; 100 % = one core), *machine busy* is "
+            "every process on the machine (100 % = all cores). The machine is shared with other "
+            "work: the load average beside each point says how much (above the core count, "
+            "every process waits for a core, ours included). *Per-scan ms* is the service's "
+            "`mapping_scan_processing_seconds` mean (decode, record, estimate, publish)."
+        ),
+        "",
+        *_table(
+            FLEET_HEADER,
+            [_fleet_row(p, "capacity") for p in fleet["capacity"]]
+            + [
+                _fleet_row(
+                    p,
+                    f"fan-out: {p['sse_clients']} SSE + {p['zenoh_pose_subscribers']} Zenoh"
+                    if p.get("sse_clients")
+                    else "fan-out: none",
+                )
+                for p in fleet["fanout"]
+            ],
+        ),
+        "",
+    ]
+    pairs = fleet.get("fanout_pairs") or []
+    if pairs:
+        lines += [
+            "Fan-out side by side (each pair run back to back):",
+            "",
+            *_table(
+                [
+                    "per-scan ms without → with",
+                    "ratio",
+                    "p99 ms without → with",
+                    "ratio",
+                    "dropped without → with",
+                ],
+                [
+                    [
+                        f"{_f(r['scan_ms_without'])} → {_f(r['scan_ms_with'])}",
+                        f"×{r['scan_ratio']:.2f}",
+                        f"{_f(r['p99_without'], 1)} → {_f(r['p99_with'], 1)}",
+                        f"×{r['p99_ratio']:.2f}",
+                        f"{r['dropped_without']} → {r['dropped_with']}",
+                    ]
+                    for r in pairs
+                ],
+            ),
+            "",
+        ]
+    for p in fleet["fanout"]:
+        fan = p.get("fanout")
+        if fan:
+            lines.append(
+                f"With subscribers: {fan['sse_connected']} of {fan['sse_requested']} SSE streams "
+                f"connected, {fan['sse_events']:,} pose events received by them, "
+                f"{fan['zenoh_subscribers']} Zenoh subscribers "
+                + ("(behind one router, as in a site) " if fan.get("zenoh_via_router") else "")
+                + "each saw new poses at "
+                f"≥ {fan['zenoh_polls_with_pose_min']} polls (every 0.5 s); the service counted "
+                f"{_f(p.get('stream_poses_dropped'), 0)} stream poses dropped."
+            )
+    return lines
+
+
+def render_fleet_only(res: dict[str, Any], doc_path: Path) -> str:
+    """`python -m bench --fleet-only`: the fleet section alone, in a file of its own."""
+    fleet = res.get("fleet")
+    lines = [
+        "# Fleet benchmark",
+        "",
+        (
+            f"Machine: {res['machine'].get('cpu_model', '?')}, "
+            f"{res['machine'].get('cores', '?')} cores, load average at the start "
+            f"{res['machine'].get('load_average_at_start', '?')}. "
+            "Written by `python -m bench --fleet-only`."
+        ),
+        "",
+        "## Targets",
+        "",
+        *_targets_table(fleet.get("targets", []) if fleet else []),
+        *fleet_section(fleet),
+    ]
+    text = "\n".join(lines).rstrip() + "\n"
+    doc_path.parent.mkdir(parents=True, exist_ok=True)
+    doc_path.write_text(text)
+    return text
+
+
 def render(res: dict[str, Any], doc_path: Path, img_dir: Path) -> str:
     """Write the plots and the markdown; returns the markdown."""
     img_dir.mkdir(parents=True, exist_ok=True)
@@ -658,8 +789,12 @@ def render(res: dict[str, Any], doc_path: Path, img_dir: Path) -> str:
         plot_latency(scale, img_dir / PLOT_LATENCY)
     if growth and "error" not in growth:
         plot_growth(growth, img_dir / PLOT_GROWTH)
+    fleet = res.get("fleet")
     all_targets = [
-        t for sec in (speed, scale, growth) if sec and "targets" in sec for t in sec["targets"]
+        t
+        for sec in (speed, scale, growth, fleet)
+        if sec and "targets" in sec
+        for t in sec["targets"]
     ]
     lines = _header(res)
     lines += ["", "## Targets", ""]
@@ -668,6 +803,8 @@ def render(res: dict[str, Any], doc_path: Path, img_dir: Path) -> str:
     lines += _scale_section(scale, img_rel)
     lines += _growth_section(growth, img_rel)
     lines += _accuracy_section(res.get("accuracy"), img_dir, img_rel)
+    if fleet is not None:
+        lines += fleet_section(fleet)
     lines += _caveats()
     text = "\n".join(lines).rstrip() + "\n"
     # Sections measured by their own benchmarks (bench.foxglove_cost) outlive a regeneration.

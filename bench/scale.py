@@ -82,6 +82,11 @@ class ScaleConfig:
     startup_timeout_s: float = 180.0
     profile_s: float = 0.0  # >0: py-spy the service for this long inside the window
     path_scans: int = 400  # scans the load generator simulates once and drives back and forth
+    sse_clients: int = (
+        0  # browser-like pose streams held open during the run (bench.fanout_clients)
+    )
+    zenoh_pose_subscribers: int = 0  # Zenoh sessions subscribed to every pose, same process
+    zenoh_via_router: bool = True  # the subscribers behind one router (in that process)
 
 
 @dataclass(slots=True)
@@ -361,6 +366,39 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
             if resp.status_code != 201:
                 raise BenchError(f"POST /sessions for {r}: {resp.status_code} {resp.text[:200]}")
             sessions[r] = resp.json()["id"]
+        fan = None
+        fanout_out = work_dir / f"{name}-fanout.json"
+        if cfg.sse_clients or cfg.zenoh_pose_subscribers:
+            fan = procs.start(
+                "fanout-clients",
+                [
+                    sys.executable,
+                    "-m",
+                    "bench.fanout_clients",
+                    "--server",
+                    base,
+                    "--sessions",
+                    ",".join(sessions.values()),
+                    "--sse",
+                    str(cfg.sse_clients),
+                    "--zenoh-connect",
+                    service_ep,
+                    "--zenoh-subscribers",
+                    str(cfg.zenoh_pose_subscribers),
+                    "--out",
+                    str(fanout_out),
+                    *(
+                        ["--via-router", f"tcp/127.0.0.1:{free_port()}"]
+                        if cfg.zenoh_via_router
+                        else []
+                    ),
+                ],
+                work_dir,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+            )
+            _wait_line(fan, "ready", 180.0, "the fan-out clients")
+            log.debug("fan-out clients ready")
         sub = procs.start(
             "subscriber",
             [
@@ -456,8 +494,10 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
 
         svc = psutil.Process(service.pid)
         load_ps = [psutil.Process(p.pid) for p in load_procs]
-        sub_ps = [psutil.Process(sub.pid)]
+        # The fan-out clients count as subscribers: CPU on the same cores, not the service's.
+        sub_ps = [psutil.Process(sub.pid)] + ([psutil.Process(fan.pid)] if fan else [])
         metrics0 = _scrape(client)
+        result["loadavg_before"] = list(os.getloadavg())
         cpu0 = _cpu_snapshot(svc, load_ps, sub_ps)
         t0_ns, w0 = time.time_ns(), time.monotonic()
         profile = None
@@ -472,6 +512,7 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
             time.sleep(max(0.0, cfg.measure_s - (time.monotonic() - w0)))
         t1_ns = time.time_ns()
         cpu1 = _cpu_snapshot(svc, load_ps, sub_ps)
+        result["loadavg_after"] = list(os.getloadavg())
         metrics1 = _scrape(client)
 
         # Stop the load, then let the service work off its queues, so that every scan of the
@@ -482,6 +523,12 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
         sub.stdin.write("stop\n")
         sub.stdin.flush()
         sub.wait(timeout=60)
+        if fan is not None and fan.stdin is not None:
+            fan.stdin.write("stop\n")
+            fan.stdin.flush()
+            fan.wait(timeout=60)
+            if fanout_out.exists():
+                result["fanout"] = json.loads(fanout_out.read_text())
         data = np.load(rec_path)
         names = [str(x) for x in data["robots"]]
         # The subscriber numbers robots in order of appearance; only our robots count.
@@ -508,6 +555,14 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
                 "metrics_delta": metrics_delta(metrics0, metrics1),
             }
         )
+        delta = result["metrics_delta"]
+        count = delta.get("mapping_scan_processing_seconds_count", 0.0)
+        result["scan_processing_ms_mean"] = (
+            1000.0 * delta.get("mapping_scan_processing_seconds_sum", 0.0) / count
+            if count
+            else math.nan
+        )
+        result["stream_poses_dropped"] = delta.get("mapping_pose_stream_dropped_total", 0.0)
         if profile is not None:
             result["profile"] = profile.as_dict()
     finally:

@@ -12,6 +12,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, Final, TextIO
 
+from clients.fleet import FleetView, query_fleet
 from clients.http import (
     DEFAULT_TIMEOUT_S,
     MapFormat,
@@ -23,6 +24,7 @@ from clients.http import (
     SavedMap,
     Session,
 )
+from clients.keyexpr import DEFAULT_PREFIX
 
 EXIT_OK: Final = 0
 EXIT_REFUSED: Final = 1  # the service answered 4xx
@@ -51,6 +53,7 @@ examples:
   mapctl map SESSION --out map.png
   mapctl maps get MAP_ID --version 2 --out map.pgm
   mapctl watch
+  mapctl fleet --zenoh-connect tcp/router:7447
 """
 
 # ANSI sequences for `watch` on a terminal.
@@ -155,6 +158,23 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--format", choices=("png", "pgm", "yaml"), default=None, help="default: --out")
     add("health", "show the service's health")
 
+    p = add(
+        "fleet",
+        "every mapping-service instance on the Zenoh network: robots, sessions, conflicts",
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="ask Zenoh directly (a router or an instance, e.g. tcp/127.0.0.1:7447; "
+        "repeatable); without it, ask --server's GET /fleet",
+    )
+    p.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix (default %(default)s)")
+    p.add_argument(
+        "--query-timeout", type=float, default=2.0, metavar="S", help="Zenoh query timeout"
+    )
+
     p = add("watch", "live table of sessions: robots, poses, quality, scan rate")
     p.add_argument("--interval", type=float, default=1.0, metavar="S", help="refresh period")
     p.add_argument("--count", type=int, default=None, metavar="N", help="stop after N refreshes")
@@ -163,6 +183,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.command == "fleet" and args.zenoh_connect:
+        return _cmd_fleet_zenoh(args, sys.stdout)
     try:
         with MappingClient(args.server, token=args.token, timeout_s=args.timeout) as client:
             return int(_COMMANDS[args.command](client, args, sys.stdout))
@@ -393,6 +415,64 @@ def _cmd_health(client: MappingClient, args: argparse.Namespace, out: TextIO) ->
     return EXIT_OK if health.ok else EXIT_UNAVAILABLE
 
 
+def _cmd_fleet(client: MappingClient, args: argparse.Namespace, out: TextIO) -> int:
+    try:
+        view = FleetView.from_json(client.fleet_json())
+    except ValueError as err:
+        raise MappingProtocolError(None, f"fleet: {err}") from err
+    return _print_fleet(view, args, out)
+
+
+def _cmd_fleet_zenoh(args: argparse.Namespace, out: TextIO) -> int:
+    import zenoh  # noqa: PLC0415 (only this command needs Zenoh)
+
+    from clients.zenoh_config import build_zenoh_config  # noqa: PLC0415
+
+    try:
+        conf = build_zenoh_config(mode="client", connect=args.zenoh_connect)
+        with zenoh.open(conf) as session:
+            view = query_fleet(session, args.prefix, args.query_timeout)
+    except zenoh.ZError as err:
+        _err(f"cannot reach Zenoh at {', '.join(args.zenoh_connect)}: {err}")
+        return EXIT_UNAVAILABLE
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    return _print_fleet(view, args, out)
+
+
+def _print_fleet(view: FleetView, args: argparse.Namespace, out: TextIO) -> int:
+    """One row per session (an instance without sessions gets a row of its own)."""
+    if args.json:
+        _dump(view.to_json(), out)
+        return EXIT_OK
+    headers = ["INSTANCE", "ROBOTS", "SESSION", "ROBOT", "STATE", "SCANS"]
+    rows: list[list[str]] = []
+    for inst in view.instances:
+        patterns = " ".join(inst.patterns)
+        if not inst.sessions:
+            rows.append([inst.instance_id, patterns, "-", "-", "-", "-"])
+        for s in sorted(inst.sessions, key=lambda s: (s.robot_id, s.session_id)):
+            rows.append(
+                [
+                    inst.instance_id,
+                    patterns,
+                    s.session_id,
+                    s.robot_id,
+                    s.state,
+                    str(s.scans_accepted),
+                ]
+            )
+    if rows:
+        out.write(_table(headers, rows, right={5}) + "\n")
+    else:
+        out.write("no mapping-service instance answered\n")
+    for instance_id in view.alive_without_answer:
+        out.write(f"{instance_id}: alive but did not answer in time\n")
+    for conflict in view.conflicts:
+        out.write(f"CONFLICT: {conflict.describe()}\n")
+    return EXIT_OK
+
+
 def _cmd_watch(client: MappingClient, args: argparse.Namespace, out: TextIO) -> int:
     if args.interval <= 0:
         _err("--interval must be positive")
@@ -465,6 +545,7 @@ def _idle_robots(client: MappingClient) -> list[str]:
 
 _COMMANDS: Final[dict[str, Command]] = {
     "sessions": _cmd_sessions,
+    "fleet": _cmd_fleet,
     "show": _cmd_show,
     "start": _cmd_start,
     "stop": _session_action("stop"),

@@ -510,6 +510,10 @@ class MappingClient:
     def health(self) -> Health:
         return Health.from_json(self._json("GET", "/health"))
 
+    def fleet_json(self) -> Any:
+        """`GET /fleet`: every instance on the service's Zenoh network (`clients.fleet`)."""
+        return self._json("GET", "/fleet")
+
     def metrics(self) -> str:
         """Prometheus text exposition."""
         return self._request("GET", "/metrics", headers={"Accept": "text/plain"}).text

@@ -134,6 +134,22 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve the Foxglove WebSocket live view on the HTTP host at PORT "
         "(e.g. 8765; default 0: off; same loopback/token rule as HTTP)",
     )
+    g = p_serve.add_argument_group("fleet (several instances on one Zenoh network)")
+    g.add_argument(
+        "--robots",
+        action="append",
+        default=None,
+        metavar="PATTERN",
+        help="map only robots whose id matches PATTERN, e.g. 'warehouse-a-*' ('*' matches any "
+        "run of id characters; repeatable; default: every robot)",
+    )
+    g.add_argument(
+        "--instance-id",
+        default=None,
+        metavar="ID",
+        help="this instance's name on Zenoh, <prefix>/_instances/<ID> (or env "
+        "MAPPING_INSTANCE_ID; default: <hostname>-<http port>)",
+    )
     _add_zenoh_args(p_serve)
     p_serve.set_defaults(handler="service.app.main:run_serve")
 

@@ -42,4 +42,6 @@ class StoreError(ServiceError):
 
 
 class TransportError(ServiceError):
-    """Zenoh could not be opened or configured."""
+    """Zenoh could not be opened, configured or queried."""
+
+    status = 503

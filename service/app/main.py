@@ -8,6 +8,7 @@ import json
 import logging
 import signal
 import socket
+import sys
 import threading
 from collections.abc import Callable
 from types import FrameType
@@ -25,6 +26,7 @@ log = logging.getLogger(__name__)
 EXIT_OK = 0
 EXIT_FAILURE = 1
 EXIT_USAGE = 2
+GIL_SWITCH_INTERVAL_S = 0.001
 
 OnReady = Callable[[str], None]
 
@@ -162,6 +164,7 @@ def run_runtime(
         sock = bind_socket(settings.http.host, settings.http.port)
         try:
             with runtime_factory(settings) as runtime:
+                runtime.http_url = http_url(sock, settings.http.host)
                 return serve_http(runtime, sock, on_ready=on_ready, duration_s=duration_s)
         finally:
             sock.close()
@@ -183,4 +186,9 @@ def run_serve(args: argparse.Namespace) -> int:
         log.error("%s", err.reason)
         return EXIT_USAGE
     log_settings(settings)
+    # The HTTP loop (pose streams, map renders) and the ingest threads share the GIL. A thread
+    # that waits for it gets it only after the holder's switch interval (5 ms by default), and
+    # an ingest thread takes it several times per scan: with a busy loop that made each scan
+    # wait for tens of milliseconds. 1 ms bounds the wait at a small cost in switches.
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     return run_runtime(settings)

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
-from clients.wire import Scan
+from clients.wire import Scan, decode_scan
 from service.core.types import LaserScan, Pose2D, PoseEstimate
 
 log = logging.getLogger(__name__)
@@ -97,7 +97,11 @@ class MapperLostError(MapperError):
 class Mapper(Protocol):
     """One session's estimator and grid."""
 
-    def map_scan(self, scan: Scan) -> MappedScan: ...
+    def map_scan(self, scan: Scan, payload: bytes | None = None) -> MappedScan:
+        """Map `scan`; `payload` is its wire encoding when the caller has it (a mapper in
+        another process is sent those bytes rather than the pickled `Scan`)."""
+        ...
+
     def reset(self) -> None: ...
     def snapshot(self) -> Any: ...  # service.core.grid.GridImage
     def state(self) -> bytes: ...  # for checkpoints
@@ -118,7 +122,7 @@ class LocalMapper:
         self._estimator = engine.make_estimator(use_odometry)
         self._grid = engine.make_grid(resolution_m)
 
-    def map_scan(self, scan: Scan) -> MappedScan:
+    def map_scan(self, scan: Scan, payload: bytes | None = None) -> MappedScan:
         laser = self._engine.to_laser(scan, self._use_odometry)
         estimate = self._estimator.process(laser)
         if estimate.is_keyframe:
@@ -132,6 +136,10 @@ class LocalMapper:
             int(estimate.flags),
             bool(estimate.is_keyframe),
         )
+
+    def map_payload(self, payload: bytes) -> MappedScan:
+        """`map_scan` of a wire payload the service already validated (mapper processes)."""
+        return self.map_scan(decode_scan(payload, max_payload_bytes=len(payload)))
 
     def reset(self) -> None:
         self._estimator.reset()
@@ -295,7 +303,11 @@ class RemoteMapper:
     def _call(self, op: str, *args: Any) -> Any:
         return self._proc.call(self._generation, op, self._key, *args)
 
-    def map_scan(self, scan: Scan) -> MappedScan:
+    def map_scan(self, scan: Scan, payload: bytes | None = None) -> MappedScan:
+        # The wire bytes (~2.4 KiB) cross the pipe as they are: pickling the decoded `Scan`
+        # (dataclass and numpy array, ~8.7 KiB) cost the service's process ~15 us a scan more.
+        if payload is not None:
+            return MappedScan(*self._call("map_payload", payload))
         return MappedScan(*self._call("map_scan", scan))
 
     def reset(self) -> None:

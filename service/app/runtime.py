@@ -8,6 +8,7 @@ interpreter at exit), unlock the data directory.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -16,12 +17,14 @@ from typing import TYPE_CHECKING, Any
 
 import zenoh
 
+from clients.fleet import InstanceInfo, RobotPatterns, SessionEntry
 from clients.keyexpr import alive_wildcard, robot_id_from_key, scan_wildcard
 from clients.zenoh_config import build_zenoh_config
 from service.app import render
-from service.app.errors import SettingsError, TransportError
+from service.app.errors import ConflictError, SettingsError, TransportError
 from service.app.fanout import PoseFanout
 from service.app.ingest import Ingest
+from service.app.instance import FleetMember
 from service.app.mapper import Engine, MapperPool
 from service.app.metrics import Labels, Metrics, labels
 from service.app.sessions import SessionManager
@@ -57,11 +60,19 @@ class MappingRuntime:
             render_map_files=render.map_files,
         )
         prefix = settings.zenoh.prefix
-        self.fanout = PoseFanout(prefix, self.metrics, settings.http.sse_queue_depth)
+        self.fanout = PoseFanout(
+            prefix, self.metrics, settings.http.sse_queue_depth, settings.http.sse_interval_s
+        )
         self.ingest = Ingest(
             prefix, self.sessions, self.fanout.publish, self.metrics, settings.ingest
         )
         self.foxglove: FoxgloveView | None = None  # started with the runtime when configured
+        self.patterns = RobotPatterns(settings.fleet.robots)
+        self.instance_id = settings.fleet.effective_instance_id(settings.http.port)
+        self.fleet = FleetMember(
+            self.instance_id, prefix, self.describe, self.metrics, poll_s=settings.fleet.poll_s
+        )
+        self.http_url: str | None = None  # set once the HTTP socket is bound
         self._zenoh_config = zenoh_config
         self.zenoh: zenoh.Session | None = None
         self._subscribers: list[Any] = []
@@ -120,15 +131,41 @@ class MappingRuntime:
         except zenoh.ZError as err:
             raise TransportError(f"cannot open Zenoh: {err}") from err
         self.fanout.attach_zenoh(self.zenoh)
-        self._subscribers.append(
-            self.zenoh.declare_subscriber(scan_wildcard(z.prefix), self.ingest.on_sample)
-        )
-        self._subscribers.append(
-            self.zenoh.liveliness().declare_subscriber(
-                alive_wildcard(z.prefix), self._on_alive, history=True
+        patterns = self.patterns.patterns
+        for index, pattern in enumerate(patterns):
+            on_scan: Any = self.ingest.on_sample
+            if len(patterns) > 1:  # overlapping patterns: each scan is taken by its first one
+                on_scan = functools.partial(self._on_scan, index)
+            self._subscribers.append(
+                self.zenoh.declare_subscriber(scan_wildcard(z.prefix, pattern), on_scan)
             )
+            self._subscribers.append(
+                self.zenoh.liveliness().declare_subscriber(
+                    alive_wildcard(z.prefix, pattern), self._on_alive, history=True
+                )
+            )
+        log.info(
+            "Zenoh session %s subscribed to %s",
+            self.zenoh.zid(),
+            ", ".join(scan_wildcard(z.prefix, p) for p in patterns),
         )
-        log.info("Zenoh session %s subscribed to %s", self.zenoh.zid(), scan_wildcard(z.prefix))
+        for session in self.sessions.list():
+            if session.is_active and not self.patterns.matches(session.robot_id):
+                log.warning(
+                    "session %s: robot %s matches none of --robots %s: it receives no scans",
+                    session.id,
+                    session.robot_id,
+                    " ".join(patterns),
+                )
+        self.fleet.start(self.zenoh)
+
+    def _on_scan(self, index: int, sample: Any) -> None:
+        """Scan callback of pattern `index` when there are several: a robot matching two of
+        them would otherwise be queued twice."""
+        robot_id = robot_id_from_key(str(sample.key_expr), self.settings.zenoh.prefix)
+        if robot_id is not None and self.patterns.first_match(robot_id) != index:
+            return
+        self.ingest.on_sample(sample)
 
     def _start_foxglove(self) -> None:
         port = self.settings.http.foxglove_port
@@ -184,6 +221,7 @@ class MappingRuntime:
             except Exception as err:
                 log.debug("undeclare: %s", err)
         self._subscribers.clear()
+        self.fleet.close()
         self.ingest.close()
         if self.foxglove is not None:
             self.foxglove.close()
@@ -214,6 +252,36 @@ class MappingRuntime:
         tb: TracebackType | None,
     ) -> None:
         self.close()
+
+    # -- fleet ---------------------------------------------------------------------------------
+
+    def describe(self) -> InstanceInfo:
+        """What this instance answers on `<prefix>/_instances/<id>/sessions` (no session lock:
+        a scan being mapped must not delay the answer)."""
+        sessions = tuple(
+            SessionEntry(s.id, s.robot_id, "active" if s.is_active else s.state, s.scans_accepted)
+            for s in self.sessions.list()
+        )
+        return InstanceInfo(
+            instance_id=self.instance_id,
+            patterns=self.patterns.patterns,
+            http_url=self.http_url,
+            started_ns=self.started_ns,
+            sessions=sessions,
+            robots_receiving=tuple(r.robot_id for r in self.ingest.robots()),
+        )
+
+    def check_claim(self, robot_id: str) -> None:
+        """Refuse a session for a robot this instance does not serve, or one that another
+        instance already maps (as last seen on Zenoh)."""
+        if not self.patterns.matches(robot_id):
+            raise ConflictError(
+                f"robot {robot_id!r} matches none of this instance's robot patterns "
+                f"({' '.join(self.patterns.patterns)}): start it on the instance that owns it"
+            )
+        other = self.fleet.active_elsewhere(robot_id)
+        if other is not None:
+            raise ConflictError(f"robot {robot_id!r} already has an active session on {other}")
 
     # -- observations ------------------------------------------------------------------------
 

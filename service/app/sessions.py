@@ -131,6 +131,7 @@ class MappingSession:
         self.map_revision = 0
         self._image_cache: tuple[Any, int] | None = None
         self._records = 0  # records in the current recording epoch
+        self._payload: bytes | None = None  # wire bytes of the scan being estimated (lock held)
         self._checkpoint_scans = 0  # scans_accepted at the last checkpoint
 
     @property
@@ -156,7 +157,7 @@ class MappingSession:
             self._store.append(payload)  # durable before it counts
             self._records += 1
             self.scans_accepted += 1
-            pose = self._estimate(scan)
+            pose = self._estimate_payload(scan, payload)
             encoded: bytes | None = None
             if pose is not None:
                 encoded = encode_pose(pose)
@@ -167,10 +168,19 @@ class MappingSession:
                 self._write_checkpoint()
             return Ingested(True, pose, encoded)
 
+    def _estimate_payload(self, scan: Scan, payload: bytes) -> Pose | None:
+        """`_estimate` of a scan whose wire bytes are at hand: a mapper in another process is
+        sent those instead of the pickled `Scan` (lock held)."""
+        self._payload = payload
+        try:
+            return self._estimate(scan)
+        finally:
+            self._payload = None
+
     def _estimate(self, scan: Scan) -> Pose | None:
         """Run estimator and grid on `scan` (lock held). None if the estimator failed."""
         try:
-            mapped = self._map(scan)
+            mapped = self._map(scan, self._payload)
         except Exception:
             # The estimator promises not to raise on bad data; if it does anyway, the scan stays
             # recorded (a replay meets the same failure) and the session carries on.
@@ -197,14 +207,14 @@ class MappingSession:
             flags=PoseFlag(mapped.flags),
         )
 
-    def _map(self, scan: Scan) -> MappedScan:
+    def _map(self, scan: Scan, payload: bytes | None) -> MappedScan:
         """The mapper's answer; a lost mapper (its process died) is rebuilt first (lock held)."""
         try:
-            return self._mapper.map_scan(scan)
+            return self._mapper.map_scan(scan, payload)
         except MapperLostError as err:
             log.error("session %s: %s; rebuilding its map from the recording", self.id, err)
             self._rebuild_mapper()
-            return self._mapper.map_scan(scan)
+            return self._mapper.map_scan(scan, payload)
 
     def _rebuild_mapper(self) -> None:
         """A new mapper with the state of every record before the current one (lock held):
@@ -223,9 +233,8 @@ class MappingSession:
             if index < skip or record.kind != "scan":
                 continue
             try:
-                self._mapper.map_scan(
-                    decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
-                )
+                scan = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
+                self._mapper.map_scan(scan, record.payload)
             except DecodeError:
                 continue
             replayed += 1
@@ -313,7 +322,7 @@ class MappingSession:
                             self._poses.append(pending)
                         scan = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
                         self.scans_accepted += 1
-                        pending = self._estimate(scan)
+                        pending = self._estimate_payload(scan, record.payload)
                     elif kind == "pose":
                         recorded = decode_pose(record.payload)
                         if pending is not None and not _same_pose(pending, recorded):

@@ -10,13 +10,16 @@ import argparse
 import ipaddress
 import logging
 import os
+import re
+import socket
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
 
-from clients.keyexpr import DEFAULT_PREFIX, InvalidPrefixError, check_prefix
+from clients.fleet import InvalidInstanceIdError, check_instance_id
+from clients.keyexpr import DEFAULT_PREFIX, InvalidPrefixError, check_prefix, scan_wildcard
 from service.app.errors import SettingsError
 
 log = logging.getLogger(__name__)
@@ -35,6 +38,11 @@ class HttpSettings(_Frozen):
     sse_queue_depth: int = Field(default=64, ge=1, description="poses buffered per browser stream")
     # The Foxglove WebSocket live view binds the HTTP host; 0 leaves it off.
     foxglove_port: int = Field(default=0, ge=0, le=65535, description="0: no Foxglove view")
+    # Poses that arrive within this interval go to a browser in one write: with 1,000 streams
+    # the event loop makes at most 1,000 writes per interval, however fast the robots are.
+    sse_interval_s: float = Field(
+        default=0.2, ge=0.0, le=5.0, description="shortest time between two writes to a stream"
+    )
 
 
 class ZenohSettings(_Frozen):
@@ -82,6 +90,21 @@ class IngestSettings(_Frozen):
         return 2 * self.mapper_processes if self.mapper_processes else 1
 
 
+class FleetSettings(_Frozen):
+    # Robot-id patterns this instance maps (`warehouse-a-*`; `*` = every robot). Instances that
+    # split a fleet give each a disjoint set; an overlap is reported as a conflict.
+    robots: tuple[str, ...] = ("*",)
+    # The instance's name on Zenoh (`<prefix>/_instances/<id>`); default: host name and port.
+    instance_id: str | None = None
+    poll_s: float = Field(default=1.0, gt=0.0, description="period of the fleet conflict check")
+
+    def effective_instance_id(self, http_port: int) -> str:
+        if self.instance_id is not None:
+            return self.instance_id
+        host = re.sub(r"[^A-Za-z0-9_.\-]", "-", socket.gethostname()).lstrip("_.-") or "host"
+        return f"{host[:50]}-{http_port}"
+
+
 class SecuritySettings(_Frozen):
     token: SecretStr | None = None
     allow_insecure_bind: bool = False
@@ -93,6 +116,7 @@ class ServiceSettings(_Frozen):
     storage: StorageSettings = Field(default_factory=StorageSettings)
     ingest: IngestSettings = Field(default_factory=IngestSettings)
     security: SecuritySettings = Field(default_factory=SecuritySettings)
+    fleet: FleetSettings = Field(default_factory=FleetSettings)
 
     @property
     def token(self) -> str | None:
@@ -104,7 +128,10 @@ class ServiceSettings(_Frozen):
         """Refuse settings that are unsafe or unusable; raises `SettingsError` with the reason."""
         try:
             check_prefix(self.zenoh.prefix)
-        except InvalidPrefixError as err:
+            for pattern in self.fleet.robots:
+                scan_wildcard(self.zenoh.prefix, pattern)
+            check_instance_id(self.fleet.effective_instance_id(self.http.port))
+        except (InvalidPrefixError, InvalidInstanceIdError) as err:
             raise SettingsError(str(err)) from err
         if not is_loopback_host(self.http.host) and self.token is None:
             if not self.security.allow_insecure_bind:
@@ -153,7 +180,11 @@ def build_settings(
             "host": args.http_host,
             "port": args.http_port,
             "foxglove_port": getattr(args, "foxglove_port", None) or 0,
-            **from_env(max_body_bytes="MAX_BODY_BYTES", sse_queue_depth="SSE_QUEUE_DEPTH"),
+            **from_env(
+                max_body_bytes="MAX_BODY_BYTES",
+                sse_queue_depth="SSE_QUEUE_DEPTH",
+                sse_interval_s="SSE_INTERVAL_S",
+            ),
         },
         "zenoh": {
             "listen": tuple(getattr(args, "zenoh_listen", None) or ()),
@@ -177,6 +208,15 @@ def build_settings(
             if getattr(args, "mapper_processes", None) is not None
             else from_env(mapper_processes="MAPPER_PROCESSES")
         ),
+        "fleet": {
+            **({"robots": tuple(args.robots)} if getattr(args, "robots", None) else {}),
+            **(
+                {"instance_id": args.instance_id}
+                if getattr(args, "instance_id", None)
+                else from_env(instance_id="INSTANCE_ID")
+            ),
+            **from_env(poll_s="FLEET_POLL_S"),
+        },
         "security": {
             "token": getattr(args, "token", None) or _env(env, "TOKEN"),
             "allow_insecure_bind": bool(getattr(args, "allow_insecure_bind", False)),

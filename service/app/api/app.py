@@ -46,7 +46,7 @@ def web_dir() -> Path | None:
 def create_app(runtime: MappingRuntime) -> FastAPI:
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        runtime.fanout.bind_loop(asyncio.get_running_loop())
+        runtime.fanout.bind_loop(asyncio.get_running_loop(), routes_sessions.sse_pose_frame)
         try:
             yield
         finally:

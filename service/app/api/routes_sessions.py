@@ -7,8 +7,9 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Path, Query, Response
 from fastapi.responses import PlainTextResponse
-from fastapi.sse import EventSourceResponse, ServerSentEvent
+from starlette.responses import StreamingResponse
 
+from clients.wire import Pose
 from service.app import render
 from service.app.api.deps import Control, Runtime, Sessions, get_sessions
 from service.app.api.schemas import (
@@ -46,10 +47,12 @@ SessionDep = Annotated[MappingSession, Depends(get_session)]
     dependencies=Control,
     summary="Start a mapping session",
     description="Start mapping `robot_id`: its scans are recorded and mapped from now on. "
-    "One active session per robot (409 otherwise).",
+    "One active session per robot (409 otherwise), on an instance whose robot patterns match "
+    "it and not while another instance maps it (409).",
     responses=errors(401, 409, 413, 422),
 )
-def create_session(body: SessionCreate, sessions: Sessions) -> Session:
+def create_session(body: SessionCreate, sessions: Sessions, runtime: Runtime) -> Session:
+    runtime.check_claim(body.robot_id)
     session = sessions.create(body.robot_id, body.resolution_m, body.use_odometry)
     return Session.of(session.info())
 
@@ -223,13 +226,21 @@ def read_map_yaml(session: SessionDep) -> Response:
     return PlainTextResponse(text, media_type="application/yaml", headers=NO_STORE)
 
 
+def sse_pose_frame(pose: Pose) -> bytes:
+    """One pose as an SSE frame: encoded once per pose, written to every stream of its session."""
+    data = PoseView.of(pose).model_dump_json()
+    return f"event: pose\ndata: {data}\nid: {pose.seq}\n\n".encode()
+
+
 @router.get(
     "/{session_id}/pose/stream",
-    response_class=EventSourceResponse,
+    response_class=StreamingResponse,
     summary="Live poses (Server-Sent Events)",
     description="`event: pose` with a `PoseView` JSON as `data` for every new pose, starting "
-    "with the current one. A slow reader loses the oldest poses (counted in /metrics), "
-    "never slows the service. Comment lines (`: ping`) keep idle connections open.",
+    "with the current one. Poses that arrive together are written together (at most one write "
+    "per `MAPPING_SSE_INTERVAL_S`, default 0.2 s). A slow reader loses the oldest poses "
+    "(counted in /metrics), never slows the service. Comment lines (`: ping`) keep idle "
+    "connections open.",
     responses={
         200: {
             "content": {
@@ -246,25 +257,29 @@ def read_map_yaml(session: SessionDep) -> Response:
 async def stream_poses(
     session: Annotated[MappingSession, Depends(get_session)],
     runtime: Runtime,
-) -> AsyncIterator[ServerSentEvent]:
+) -> StreamingResponse:
     fanout = runtime.fanout
     stream = fanout.open_stream(session.id)
-    try:
-        sent: tuple[int, int] | None = None
-        last = session.last_pose  # after subscribing, so nothing falls in between
-        if last is not None:
-            sent = (last.seq, last.stamp_ns)
-            yield ServerSentEvent(event="pose", data=PoseView.of(last), id=str(last.seq))
-        while True:
-            pose = await stream.queue.get()
-            if pose is None:
-                return
-            if (pose.seq, pose.stamp_ns) == sent:
-                continue
-            sent = None
-            yield ServerSentEvent(event="pose", data=PoseView.of(pose), id=str(pose.seq))
-    finally:
-        fanout.close_stream(stream)
+    last = session.last_pose  # after subscribing, so nothing falls in between
+    first = b""
+    if last is not None:
+        stream.skip = (last.seq, last.stamp_ns)
+        first = sse_pose_frame(last)
+
+    async def frames() -> AsyncIterator[bytes]:
+        try:
+            if first:
+                yield first
+            while (chunk := await stream.next_chunk()) is not None:
+                yield chunk
+        finally:
+            fanout.close_stream(stream)
+
+    return StreamingResponse(
+        frames(),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )
 
 
 __all__ = ["SessionManager", "get_sessions", "router"]

@@ -7,7 +7,15 @@ import time
 from fastapi import APIRouter, Response
 
 from service.app.api.deps import Runtime
-from service.app.api.schemas import Health, RobotHealth, ZenohHealth
+from service.app.api.schemas import (
+    Fleet,
+    FleetConflict,
+    FleetHealth,
+    Health,
+    RobotHealth,
+    ZenohHealth,
+)
+from service.app.errors import TransportError
 
 router = APIRouter(tags=["system"])
 
@@ -18,8 +26,8 @@ PROMETHEUS_TEXT = "text/plain; version=0.0.4; charset=utf-8"
     "/health",
     response_model=Health,
     summary="Health",
-    description="`ok`, or `degraded` when Zenoh is closed or recording/fsync failed; plus "
-    "per-robot ingest status.",
+    description="`ok`, or `degraded` when Zenoh is closed, recording/fsync failed, or another "
+    "instance claims this one's robots (`fleet.conflicts`); plus per-robot ingest status.",
 )
 def health(runtime: Runtime) -> Health:
     zenoh_info = ZenohHealth(**runtime.zenoh_info())
@@ -36,7 +44,19 @@ def health(runtime: Runtime) -> Health:
         )
         for robot_id in sorted(set(robots) | alive | set(active))
     ]
-    ok = zenoh_info.open and runtime.fsync_errors == 0 and runtime.ingest.store_errors == 0
+    conflicts = runtime.fleet.conflicts()
+    fleet = FleetHealth(
+        instance_id=runtime.instance_id,
+        robots=list(runtime.patterns.patterns),
+        instances_seen=len(runtime.fleet.last_view().instances),
+        conflicts=[FleetConflict(**c.to_json()) for c in conflicts],
+    )
+    ok = (
+        zenoh_info.open
+        and runtime.fsync_errors == 0
+        and runtime.ingest.store_errors == 0
+        and not conflicts
+    )
     return Health(
         status="ok" if ok else "degraded",
         uptime_s=max(0.0, (time.time_ns() - runtime.started_ns) / 1e9),
@@ -44,7 +64,24 @@ def health(runtime: Runtime) -> Health:
         sessions_total=len(runtime.sessions.list()),
         zenoh=zenoh_info,
         robots=views,
+        fleet=fleet,
     )
+
+
+@router.get(
+    "/fleet",
+    response_model=Fleet,
+    summary="Every mapping-service instance on the Zenoh network",
+    description="Asks `<prefix>/_instances/*/sessions` on Zenoh now (up to 2 s): each "
+    "instance's robot patterns, sessions and robots, and conflicts between instances. "
+    "The same view as `mapctl fleet --zenoh-connect ENDPOINT`. 503 when Zenoh is closed.",
+)
+def fleet(runtime: Runtime) -> Fleet:
+    try:
+        view = runtime.fleet.query()
+    except Exception as err:  # Zenoh closed or failing
+        raise TransportError(f"cannot query the fleet on Zenoh: {err}") from err
+    return Fleet.model_validate(view.to_json())
 
 
 @router.get(

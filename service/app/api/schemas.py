@@ -142,6 +142,20 @@ class ZenohHealth(BaseModel):
     routers: int = 0
 
 
+class FleetConflict(BaseModel):
+    instances: list[str] = Field(description="the two instances (this one among them)")
+    patterns: list[list[str]] = Field(description="overlapping robot patterns (ours, theirs)")
+    robots: list[str] = Field(description="robots with an active session on both")
+    detail: str
+
+
+class FleetHealth(BaseModel):
+    instance_id: str
+    robots: list[str] = Field(description="the robot-id patterns this instance maps")
+    instances_seen: int = Field(description="instances in the last fleet check, this one included")
+    conflicts: list[FleetConflict] = Field(description="other instances claiming our robots")
+
+
 class Health(BaseModel):
     status: Literal["ok", "degraded"]
     uptime_s: float
@@ -149,6 +163,31 @@ class Health(BaseModel):
     sessions_total: int
     zenoh: ZenohHealth
     robots: list[RobotHealth]
+    fleet: FleetHealth
+
+
+class FleetSession(BaseModel):
+    session_id: str
+    robot_id: str
+    state: str
+    scans_accepted: int
+
+
+class FleetInstance(BaseModel):
+    instance_id: str
+    patterns: list[str]
+    http_url: str | None
+    started_ns: int
+    sessions: list[FleetSession]
+    robots_receiving: list[str] = Field(description="robots whose scans reach the instance")
+
+
+class Fleet(BaseModel):
+    instances: list[FleetInstance]
+    alive_without_answer: list[str] = Field(
+        description="instances whose liveliness token is present but that did not answer"
+    )
+    conflicts: list[FleetConflict]
 
 
 class ErrorBody(BaseModel):

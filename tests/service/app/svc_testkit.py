@@ -15,7 +15,8 @@ import os
 import signal
 import subprocess
 import sys
-from collections.abc import Callable, Iterator
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -126,10 +127,17 @@ def malformed_payloads(robot_id: str, count: int) -> Iterator[tuple[bytes, str]]
 class ServiceProc:
     """`mapping-service serve` in a subprocess; restartable on the same ports and data dir."""
 
-    def __init__(self, data_dir: Path, token: str | None = None, prefix: str = "robots") -> None:
+    def __init__(
+        self,
+        data_dir: Path,
+        token: str | None = None,
+        prefix: str = "robots",
+        extra_args: Sequence[str] = (),
+    ) -> None:
         self.data_dir = data_dir
         self.token = token
         self.prefix = prefix
+        self.extra_args = list(extra_args)  # e.g. --robots, --instance-id, --zenoh-connect
         self.http_port = free_port()
         self.zenoh_endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.url = f"http://127.0.0.1:{self.http_port}"
@@ -158,7 +166,7 @@ class ServiceProc:
         ]
         if self.token:
             cmd += ["--token", self.token]
-        cmd += args or []
+        cmd += self.extra_args + (args or [])
         full_env = {k: v for k, v in os.environ.items() if k != "MAPPING_TOKEN"}
         full_env.update(env or {})
         with self.log_path.open("ab") as log:
@@ -236,6 +244,58 @@ def zenoh_peer(endpoint: str) -> Iterator[zenoh.Session]:
         yield session
     finally:
         session.close()  # type: ignore[no-untyped-call]
+
+
+@contextlib.contextmanager
+def zenoh_router(endpoint: str) -> Iterator[zenoh.Session]:
+    """A Zenoh router in the test process, listening on `endpoint`; always closed."""
+    session = zenoh.open(build_zenoh_config(mode="router", listen=[endpoint]))
+    try:
+        yield session
+    finally:
+        session.close()  # type: ignore[no-untyped-call]
+
+
+class ScanPublisher:
+    """Lightweight emulated robots: one thread publishing `SimRobot` scans of several robots on
+    one Zenoh client session at `rate_hz` each (instead of one sensor-agent process per robot).
+
+    Client mode: behind a router, peers only reach each other over direct links (found by
+    gossip, which our configs turn off), so whatever connects to a router is a client."""
+
+    def __init__(self, endpoint: str, robot_ids: Sequence[str], rate_hz: float = 10.0) -> None:
+        self._endpoint = endpoint
+        self._robots = [SimRobot(r, seed=1 + i % 3) for i, r in enumerate(robot_ids)]
+        self._period_s = 1.0 / rate_hz
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.published = 0
+
+    def __enter__(self) -> ScanPublisher:
+        from clients.keyexpr import scan_key
+
+        session = zenoh.open(build_zenoh_config(mode="client", connect=[self._endpoint]))
+        pubs = [session.declare_publisher(scan_key(r.robot_id)) for r in self._robots]
+
+        def run() -> None:
+            try:
+                while not self._stop.wait(self._period_s):
+                    for robot, pub in zip(self._robots, pubs, strict=True):
+                        pub.put(robot.next_payload())
+                        self.published += 1
+            finally:
+                for pub in pubs:
+                    pub.undeclare()  # type: ignore[no-untyped-call]
+                session.close()  # type: ignore[no-untyped-call]
+
+        self._thread = threading.Thread(target=run, name="scan-publisher", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=10)
 
 
 def metric_sum(metrics: dict[str, float], name: str, **label_filter: str) -> float:

@@ -263,6 +263,7 @@ def test_openapi_documents_every_route(client: TestClient) -> None:
         ("get", "/maps/{map_id}/{version}/map.pgm"),
         ("get", "/maps/{map_id}/{version}/map.yaml"),
         ("get", "/health"),
+        ("get", "/fleet"),
         ("get", "/metrics"),
     }
     found = {(m, p) for p, ops in spec["paths"].items() for m in ops}

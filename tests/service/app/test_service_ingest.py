@@ -245,14 +245,22 @@ def test_zenoh_path_in_process_and_pose_publication(runtime: MappingRuntime) -> 
 
 def test_slow_stream_subscriber_loses_oldest_and_never_delays_others() -> None:
     metrics = Metrics()
-    fanout = PoseFanout("robots", metrics, stream_queue_depth=5)
+    fanout = PoseFanout("robots", metrics, stream_queue_depth=5, stream_min_interval_s=0.0)
     total = 200
+    encoded: list[int] = []
 
     def pose(seq: int) -> Pose:
         return Pose("s-1", "r1", seq, seq, 0.0, 0.0, 0.0, 1.0)
 
+    def encode(p: Pose) -> bytes:
+        encoded.append(p.seq)
+        return f"{p.seq}\n".encode()
+
+    def seqs(chunk: bytes) -> list[int]:
+        return [int(x) for x in chunk.decode().split()]
+
     async def scenario() -> tuple[list[int], list[int], int]:
-        fanout.bind_loop(asyncio.get_running_loop())
+        fanout.bind_loop(asyncio.get_running_loop(), encode)
         fast = fanout.open_stream("s-1")
         slow = fanout.open_stream("s-1")  # never read until the end
         other = fanout.open_stream("s-2")
@@ -269,17 +277,18 @@ def test_slow_stream_subscriber_loses_oldest_and_never_delays_others() -> None:
         threading.Thread(target=worker).start()
         got_fast: list[int] = []
         while len(got_fast) < total:
-            item = await asyncio.wait_for(fast.queue.get(), 10)
-            assert item is not None
-            got_fast.append(item.seq)
-            acks.release()
+            chunk = await asyncio.wait_for(fast.next_chunk(), 10)
+            assert chunk is not None
+            for seq in seqs(chunk):
+                got_fast.append(seq)
+                acks.release()
         await asyncio.to_thread(done.wait, 10)
         fanout.end_streams()
         got_slow: list[int] = []
-        while (item := await slow.queue.get()) is not None:
-            got_slow.append(item.seq)
+        while (chunk := await slow.next_chunk()) is not None:
+            got_slow.extend(seqs(chunk))
         assert done.is_set()
-        assert other.queue.get_nowait() is None  # nothing for another session
+        assert await other.next_chunk() is None  # nothing for another session
         for stream in (fast, slow, other):
             fanout.close_stream(stream)
         return got_fast, got_slow, slow.dropped
@@ -290,6 +299,7 @@ def test_slow_stream_subscriber_loses_oldest_and_never_delays_others() -> None:
     assert got_slow[-1] == total - 1  # the newest survive
     assert slow_dropped == total - len(got_slow)
     assert metrics.total("mapping_pose_stream_dropped_total") == slow_dropped
+    assert encoded == list(range(total))  # once per pose, not once per stream
 
 
 def test_recording_failure_is_counted_and_the_worker_survives(
