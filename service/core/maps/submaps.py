@@ -13,7 +13,8 @@ lands on a wall where nothing is known. Scoring it as a miss (0) makes a closure
 placement that overlaps the submap most (it folded ACES' central corridor by 4 m in a first
 attempt); leaving it out makes it slide to where its misfits fall outside (0.2 m along a
 synthetic corridor in a second one). The field is the maximum of Gaussian bumps, each stamped
-around its hit. A second, coarse field is its sliding maximum over a block of `coarse_factor` cells: a score on it bounds every fine score inside that block (branch and bound).
+around its hit. A second, coarse field is its sliding maximum over a block of `coarse_factor`
+cells: a score on it bounds every fine score inside that block (branch and bound).
 """
 
 from __future__ import annotations
