@@ -195,6 +195,9 @@ class Pose:
     quality: float  # 0 = no confidence, 1 = fully constrained match
     flags: PoseFlag = PoseFlag.NONE
     version: int = SCHEMA_VERSION
+    # Row-major 3×3 covariance of (x_m, y_m, theta_rad), relative to the latest keyframe, map
+    # axes (docs/wire-format.md). Optional: older publishers send none, older decoders skip it.
+    covariance: tuple[float, ...] | None = None
 
     @property
     def is_ambiguous(self) -> bool:
@@ -268,6 +271,8 @@ def encode_pose(pose: Pose) -> bytes:
         "quality": float(pose.quality),
         "flags": int(pose.flags),
     }
+    if pose.covariance is not None:
+        body["cov"] = [float(v) for v in pose.covariance]
     _check_encodable(_pose_from_body, body)
     return _pack(body)
 
@@ -505,7 +510,28 @@ def _pose_from_body(body: dict[str, Any]) -> Pose:
         theta_rad=_finite_float(body, "theta_rad"),
         quality=quality,
         flags=PoseFlag(flags),
+        covariance=_covariance(body),
     )
+
+
+def _covariance(body: dict[str, Any]) -> tuple[float, ...] | None:
+    """The optional `cov`: 9 finite floats, a symmetric 3×3 with a non-negative diagonal."""
+    if "cov" not in body:
+        return None
+    cov = body["cov"]
+    if not isinstance(cov, list) or len(cov) != 9:
+        raise DecodeError("bad_covariance", "cov must be a list of 9 numbers (row-major 3x3)")
+    if not all(type(v) in (int, float) and math.isfinite(v) for v in cov):
+        raise DecodeError("bad_covariance", "cov values must be finite numbers")
+    values = tuple(float(v) for v in cov)
+    if min(values[0], values[4], values[8]) < 0.0:
+        raise DecodeError("bad_covariance", "cov has a negative variance")
+    if any(abs(values[i] - values[j]) > 1e-9 * (1.0 + abs(values[i])) for i, j in _SYMMETRIC):
+        raise DecodeError("bad_covariance", "cov is not symmetric")
+    return values
+
+
+_SYMMETRIC = ((1, 3), (2, 6), (5, 7))
 
 
 __all__ = [

@@ -84,6 +84,7 @@ class MappedScan(NamedTuple):
     quality: float
     flags: int
     is_keyframe: bool  # the grid took this scan in
+    covariance: tuple[float, ...] = ()  # row-major 3×3 (x, y, θ); () when the estimator has none
 
 
 class MapperError(Exception):
@@ -135,6 +136,7 @@ class LocalMapper:
             float(estimate.quality),
             int(estimate.flags),
             bool(estimate.is_keyframe),
+            tuple(float(v) for v in getattr(estimate, "covariance", ())),
         )
 
     def map_payload(self, payload: bytes) -> MappedScan:

@@ -205,6 +205,7 @@ class MappingSession:
             theta_rad=mapped.theta_rad,
             quality=min(max(mapped.quality, 0.0), 1.0),
             flags=PoseFlag(mapped.flags),
+            covariance=mapped.covariance if len(mapped.covariance) == 9 else None,
         )
 
     def _map(self, scan: Scan, payload: bytes | None) -> MappedScan:

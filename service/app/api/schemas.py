@@ -40,6 +40,13 @@ class PoseView(BaseModel):
     theta: float = Field(description="radians, counter-clockwise, in [-π, π)")
     quality: float = Field(ge=0.0, le=1.0, description="0 = no confidence, 1 = fully constrained")
     flags: list[str] = Field(description="PoseFlag names, e.g. AMBIGUOUS_X")
+    covariance: list[float] | None = Field(
+        default=None,
+        min_length=9,
+        max_length=9,
+        description="row-major 3x3 covariance of (x, y, theta) relative to the latest keyframe, "
+        "map axes (m², m·rad, rad²); null when the estimator gave none",
+    )
 
     @classmethod
     def of(cls, pose: Pose) -> PoseView:
@@ -54,6 +61,7 @@ class PoseView(BaseModel):
             theta=pose.theta_rad,
             quality=pose.quality,
             flags=flag_names(pose.flags),
+            covariance=list(pose.covariance) if pose.covariance is not None else None,
         )
 
 
