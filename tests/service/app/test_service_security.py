@@ -51,6 +51,7 @@ def read_paths(sid: str) -> list[str]:
         f"/maps/{sid}/1/map.pgm",
         f"/maps/{sid}/1/map.yaml",
         "/metrics",
+        "/fleet",
     ]
 
 
