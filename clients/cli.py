@@ -44,7 +44,8 @@ exit codes:
 
 environment:
   MAPPING_SERVER  default for --server (else {DEFAULT_SERVER})
-  MAPPING_TOKEN   default for --token
+  MAPPING_TOKEN   default for --token (safer than the flag: not visible in `ps`)
+  MAPPING_TOKEN_FILE  default for --token-file
 
 examples:
   mapctl start amr-07
@@ -82,10 +83,18 @@ def build_parser() -> argparse.ArgumentParser:
         default=os.environ.get("MAPPING_SERVER") or DEFAULT_SERVER,
         help="service base URL (env MAPPING_SERVER; default %(default)s)",
     )
-    parser.add_argument(
+    tokens = parser.add_mutually_exclusive_group()
+    tokens.add_argument(
         "--token",
-        default=os.environ.get("MAPPING_TOKEN") or None,
-        help="bearer token for control operations (env MAPPING_TOKEN)",
+        default=None,
+        help="bearer token: the control token, or the read token for reads only; visible "
+        "in `ps`, so prefer env MAPPING_TOKEN or --token-file",
+    )
+    tokens.add_argument(
+        "--token-file",
+        default=None,
+        metavar="FILE",
+        help="read the token from FILE (its first line; env MAPPING_TOKEN_FILE)",
     )
     parser.add_argument(
         "--timeout",
@@ -181,12 +190,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _token(args: argparse.Namespace) -> str | None:
+    """--token, --token-file, MAPPING_TOKEN, MAPPING_TOKEN_FILE: the first one given."""
+    if args.token:
+        return str(args.token)
+    path = args.token_file
+    if path is None:
+        if os.environ.get("MAPPING_TOKEN"):
+            return os.environ["MAPPING_TOKEN"]
+        path = os.environ.get("MAPPING_TOKEN_FILE") or None
+    if path is None:
+        return None
+    lines = Path(path).read_text(encoding="utf-8").strip().splitlines()
+    if not lines or not lines[0].strip():
+        raise OSError(f"{path} is empty")
+    return lines[0].strip()
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.command == "fleet" and args.zenoh_connect:
         return _cmd_fleet_zenoh(args, sys.stdout)
     try:
-        with MappingClient(args.server, token=args.token, timeout_s=args.timeout) as client:
+        token = _token(args)
+    except (OSError, UnicodeDecodeError) as err:
+        _err(f"cannot read the token file: {err}")
+        return EXIT_USAGE
+    try:
+        with MappingClient(args.server, token=token, timeout_s=args.timeout) as client:
             return int(_COMMANDS[args.command](client, args, sys.stdout))
     except MappingError as err:
         return _report(err, args.server)

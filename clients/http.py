@@ -38,12 +38,15 @@ class MappingError(Exception):
 
     `status` is the HTTP status code, or None when no HTTP answer was received.
     `reason` is the service's one-line `detail`, or a description of the failure.
+    `code` is the service's machine-readable error code (`not_found`, `no_pose_yet`,
+    `unauthorized`, `forbidden`, ...), or None.
     """
 
-    def __init__(self, status: int | None, reason: str) -> None:
+    def __init__(self, status: int | None, reason: str, code: str | None = None) -> None:
         super().__init__(f"{status}: {reason}" if status is not None else reason)
         self.status = status
         self.reason = reason
+        self.code = code
 
 
 class MappingConnectionError(MappingError):
@@ -356,8 +359,10 @@ def _get_str_list(obj: dict[str, Any], key: str, what: str) -> list[str]:
 class MappingClient:
     """Synchronous client for one mapping service.
 
-    `token` is sent as `Authorization: Bearer <token>` on every request (the service only checks
-    it on control operations). Use as a context manager, or call `close()`.
+    `token` is sent as `Authorization: Bearer <token>` on every request: the control token (for
+    everything), or the read token (reads only; control operations then answer 403). A service
+    with a read token refuses reads without one (401). Use as a context manager, or call
+    `close()`.
     """
 
     def __init__(
@@ -435,7 +440,8 @@ class MappingClient:
     # -- poses ------------------------------------------------------------------------------
 
     def get_pose(self, session_id: str) -> PoseView:
-        """The latest pose. A 404 `MappingError` until the session has its first pose."""
+        """The latest pose. Until the session has its first pose: a `MappingError` with status
+        409 and code `no_pose_yet` (404 `not_found` means there is no such session)."""
         return PoseView.from_json(self._json("GET", _session_path(session_id, "pose")))
 
     def get_trajectory(self, session_id: str) -> list[PoseView]:
@@ -567,6 +573,7 @@ def _bool_param(value: bool) -> str:
 def _error_from_response(response: httpx.Response) -> MappingError:
     """The service's `{"detail": ...}` as a MappingError (FastAPI 422 details are lists)."""
     reason = response.reason_phrase or "error"
+    code: str | None = None
     try:
         body = response.json()
     except ValueError:
@@ -576,7 +583,8 @@ def _error_from_response(response: httpx.Response) -> MappingError:
     else:
         if isinstance(body, dict) and "detail" in body:
             reason = _detail_text(body["detail"])
-    return MappingError(response.status_code, reason)
+            code = body.get("code") if isinstance(body.get("code"), str) else None
+    return MappingError(response.status_code, reason, code)
 
 
 def _detail_text(detail: object) -> str:

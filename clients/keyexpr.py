@@ -1,4 +1,5 @@
-"""Zenoh key expressions of the system: `<prefix>/<robot_id>/scan|pose|alive`."""
+"""Zenoh key expressions of the system: `<prefix>/<robot_id>/scan|pose|alive`, and the
+per-publisher liveliness token `<prefix>/<robot_id>/alive/<zenoh_id>`."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from clients.wire import WireError, check_robot_id, is_valid_robot_id
 
 DEFAULT_PREFIX: Final = "robots"
 _PREFIX_CHUNK: Final = re.compile(r"^[A-Za-z0-9_.\-]+$")
+_ZENOH_ID: Final = re.compile(r"^[0-9a-f]{1,32}$")
 
 
 class InvalidPrefixError(WireError, ValueError):
@@ -35,6 +37,31 @@ def pose_key(robot_id: str, prefix: str = DEFAULT_PREFIX) -> str:
 
 def alive_key(robot_id: str, prefix: str = DEFAULT_PREFIX) -> str:
     return f"{check_prefix(prefix)}/{check_robot_id(robot_id)}/alive"
+
+
+def publisher_alive_key(robot_id: str, zenoh_id: str, prefix: str = DEFAULT_PREFIX) -> str:
+    """The liveliness token of one publisher of a robot: Zenoh merges tokens on one key, so
+    two agents with the same robot id look like one on `alive`; here each has its own."""
+    if _ZENOH_ID.fullmatch(zenoh_id) is None:
+        raise InvalidPrefixError(f"invalid Zenoh id {zenoh_id!r}")
+    return f"{alive_key(robot_id, prefix)}/{zenoh_id}"
+
+
+def publisher_alive_wildcard(prefix: str = DEFAULT_PREFIX, robots: str = "*") -> str:
+    return f"{check_prefix(prefix)}/{_check_pattern(robots)}/alive/*"
+
+
+def publisher_from_alive_key(key: str, prefix: str = DEFAULT_PREFIX) -> tuple[str, str] | None:
+    """(robot id, Zenoh id) of a `<prefix>/<id>/alive/<zenoh id>` key, or None."""
+    head = check_prefix(prefix) + "/"
+    if not key.startswith(head):
+        return None
+    parts = key[len(head) :].split("/")
+    if len(parts) != 3 or parts[1] != "alive" or not is_valid_robot_id(parts[0]):
+        return None
+    if _ZENOH_ID.fullmatch(parts[2]) is None:
+        return None
+    return parts[0], parts[2]
 
 
 def scan_wildcard(prefix: str = DEFAULT_PREFIX, robots: str = "*") -> str:

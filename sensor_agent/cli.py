@@ -66,7 +66,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="ENDPOINT",
         help="endpoint to accept Zenoh peers on, e.g. tcp/0.0.0.0:7448 (repeatable)",
     )
-    parser.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file")
+    parser.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="Zenoh JSON5 config file, e.g. TLS and user/password (docs/service.md, "
+        "'Securing Zenoh')",
+    )
     parser.add_argument(
         "--zenoh-mode",
         choices=("peer", "client", "router"),

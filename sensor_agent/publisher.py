@@ -1,4 +1,9 @@
-"""One Zenoh publisher for every scan source: `<prefix>/<robot_id>/scan` plus a liveliness token.
+"""One Zenoh publisher for every scan source: `<prefix>/<robot_id>/scan` plus liveliness tokens.
+
+Two tokens: the robot's `<prefix>/<robot_id>/alive` (presence) and this publisher's own
+`<prefix>/<robot_id>/alive/<zenoh id>`, and every scan carries the publisher's source id
+(`source_info`): Zenoh merges tokens on one key, so without them the service could not tell
+two agents that use the same robot id apart (it refuses the second one's scans).
 
 Sources hand scans to `ScanPublisher.submit()`, which numbers them consecutively, stamps the
 robot id and queues them; a worker thread encodes (`clients.wire.encode_scan`) and puts them.
@@ -23,13 +28,14 @@ from typing import Final
 
 import zenoh
 
-from clients.keyexpr import DEFAULT_PREFIX, alive_key, scan_key
+from clients.keyexpr import DEFAULT_PREFIX, alive_key, publisher_alive_key, scan_key
 from clients.wire import Scan, WireError, encode_scan
 
 log = logging.getLogger(__name__)
 
 DEFAULT_QUEUE_SCANS: Final = 80  # 2 s at 40 Hz
 _DROP_LOG_INTERVAL_S: Final = 5.0
+_SN_MASK: Final = 0xFFFFFFFF  # Zenoh's source sequence number is a u32
 
 
 @dataclass(slots=True)
@@ -73,6 +79,11 @@ class ScanPublisher:
         )
         # Kept on self: a liveliness token is undeclared as soon as it is garbage-collected.
         self._token = session.liveliness().declare_token(alive_key(robot_id, prefix))
+        self._publisher_token = session.liveliness().declare_token(
+            publisher_alive_key(robot_id, str(session.zid()), prefix)
+        )
+        # Unstable API in zenoh-python 1.x: without it, scans go out without a source id.
+        self._source_id: zenoh.EntityGlobalId | None = getattr(self._publisher, "id", None)
         self._queue: queue.Queue[Scan | _Stop] = queue.Queue(maxsize=queue_scans)
         self._seq = 0
         self._last_drop_log = 0.0
@@ -122,12 +133,23 @@ class ScanPublisher:
                 log.error("scan %d violates the wire contract: %s", item.seq, err)
                 continue
             try:
-                self._publisher.put(payload)
+                self._publisher.put(payload, source_info=self._source_info(item.seq))
             except zenoh.ZError as err:
                 self.counters.dropped += 1
                 log.warning("put of scan %d failed: %s", item.seq, err)
                 continue
             self.counters.published += 1
+
+    def _source_info(self, seq: int) -> zenoh.SourceInfo | None:
+        """This publisher's id and the scan's number, so that a second agent is told apart."""
+        if self._source_id is None:
+            return None
+        try:
+            return zenoh.SourceInfo(self._source_id, seq & _SN_MASK)
+        except (TypeError, ValueError) as err:
+            log.warning("scans go out without a source id: %s", err)
+            self._source_id = None
+            return None
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Send what is queued (up to `timeout_s`), then undeclare the publisher and token."""
@@ -144,6 +166,7 @@ class ScanPublisher:
             log.warning("publisher thread did not finish within %.1f s", timeout_s)
         try:
             self._token.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stubs
+            self._publisher_token.undeclare()  # type: ignore[no-untyped-call]
             self._publisher.undeclare()  # type: ignore[no-untyped-call]
         except zenoh.ZError as err:  # session already closed
             log.debug("undeclare failed: %s", err)

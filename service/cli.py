@@ -29,7 +29,12 @@ def _add_zenoh_args(p: argparse.ArgumentParser) -> None:
         metavar="ENDPOINT",
         help="endpoint of a router or peer to connect to (repeatable)",
     )
-    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file, passed through")
+    g.add_argument(
+        "--zenoh-config",
+        metavar="FILE",
+        help="Zenoh JSON5 config file, passed through (TLS, user/password: docs/service.md); "
+        "--zenoh-listen replaces its listen endpoints",
+    )
     g.add_argument(
         "--prefix",
         default=DEFAULT_PREFIX,
@@ -108,15 +113,47 @@ def build_parser() -> argparse.ArgumentParser:
     p_serve.add_argument(
         "--data-dir", default="./data", help="state directory (default: %(default)s)"
     )
-    p_serve.add_argument(
+    sec = p_serve.add_argument_group(
+        "access",
+        "Two scopes: the control token may create, stop, reset, save and delete sessions (and "
+        "read); the read token may only read (sessions, poses, trajectories, maps, the pose "
+        "stream, /metrics and the full /health). A token on the command line is visible to "
+        "every user in `ps`: prefer MAPPING_TOKEN / MAPPING_READ_TOKEN in the environment, or "
+        "a token file (MAPPING_TOKEN_FILE / MAPPING_READ_TOKEN_FILE also work).",
+    )
+    sec.add_argument(
         "--token",
         default=None,
-        help="bearer token required for control operations (or env MAPPING_TOKEN)",
+        help="control token (visible in `ps`: prefer env MAPPING_TOKEN or --token-file)",
     )
-    p_serve.add_argument(
+    sec.add_argument(
+        "--token-file",
+        default=None,
+        metavar="FILE",
+        help="read the control token from FILE (its first line; chmod 600)",
+    )
+    sec.add_argument(
+        "--read-token",
+        default=None,
+        help="read token: every read needs it or the control token (visible in `ps`: prefer "
+        "env MAPPING_READ_TOKEN or --read-token-file)",
+    )
+    sec.add_argument(
+        "--read-token-file",
+        default=None,
+        metavar="FILE",
+        help="read the read token from FILE (its first line; chmod 600)",
+    )
+    sec.add_argument(
+        "--public-reads",
+        action="store_true",
+        help="allow a non-loopback HTTP bind with a control token but no read token: every "
+        "map and robot track is then readable by anyone who reaches the port",
+    )
+    sec.add_argument(
         "--allow-insecure-bind",
         action="store_true",
-        help="allow a non-loopback HTTP bind without a token",
+        help="allow a non-loopback HTTP bind without any token (logged as a warning)",
     )
     p_serve.add_argument(
         "--mapper-processes",

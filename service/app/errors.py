@@ -1,4 +1,8 @@
-"""The service's one exception family; the HTTP layer maps each kind to a status code."""
+"""The service's one exception family; the HTTP layer maps each kind to a status code.
+
+Every HTTP error body is `{"detail": "<one-line reason>", "code": "<machine-readable code>"}`;
+`code` defaults to the kind's own and may be narrowed (e.g. `no_pose_yet` for a 404).
+"""
 
 from __future__ import annotations
 
@@ -7,30 +11,44 @@ class ServiceError(Exception):
     """Base of every error the service raises on purpose. `status` is the HTTP status to use."""
 
     status = 500
+    default_code = "internal_error"
 
-    def __init__(self, reason: str) -> None:
+    def __init__(self, reason: str, code: str | None = None) -> None:
         super().__init__(reason)
         self.reason = reason
+        self.code = code or self.default_code
 
 
 class BadRequestError(ServiceError):
     status = 400
+    default_code = "bad_request"
 
 
 class UnauthorizedError(ServiceError):
     status = 401
+    default_code = "unauthorized"
+
+
+class ForbiddenError(ServiceError):
+    """A valid token without the scope the operation needs (the read token on control)."""
+
+    status = 403
+    default_code = "forbidden"
 
 
 class NotFoundError(ServiceError):
     status = 404
+    default_code = "not_found"
 
 
 class ConflictError(ServiceError):
     status = 409
+    default_code = "conflict"
 
 
 class PayloadTooLargeError(ServiceError):
     status = 413
+    default_code = "payload_too_large"
 
 
 class SettingsError(ServiceError):
@@ -40,8 +58,11 @@ class SettingsError(ServiceError):
 class StoreError(ServiceError):
     """The data directory is unusable: locked by another process, unreadable, corrupt."""
 
+    default_code = "store_error"
+
 
 class TransportError(ServiceError):
     """Zenoh could not be opened, configured or queried."""
 
     status = 503
+    default_code = "zenoh_unavailable"

@@ -31,6 +31,7 @@ from clients.keyexpr import robot_id_from_key
 from clients.wire import DecodeError, Pose, Scan, decode_scan, is_valid_robot_id
 from service.app.errors import ServiceError
 from service.app.metrics import SCAN_SECONDS_BUCKETS, Labels, Metrics, labels
+from service.app.publishers import source_id_of
 from service.app.sessions import SessionManager
 from service.app.settings import IngestSettings
 
@@ -90,8 +91,13 @@ class Ingest:
         publish: Callable[[Pose, bytes | None], None],
         metrics: Metrics,
         settings: IngestSettings,
+        *,
+        admit: Callable[[str, str | None], bool] | None = None,
     ) -> None:
+        """`admit(robot_id, source_id)` may refuse a scan before it is queued (it counts and
+        logs that itself): `PublisherGuard.admit`, against a second publisher on a key."""
         self._prefix = prefix
+        self._admit = admit
         self._sessions = sessions
         self._publish = publish
         self._metrics = metrics
@@ -125,15 +131,18 @@ class Ingest:
                 robot = robot_id_from_key(key, self._prefix) or "?"
                 self._reject("too_large", robot, f"{len(sample.payload)} bytes")
                 return
-            self.submit(key, sample.payload.to_bytes())
+            self.submit(key, sample.payload.to_bytes(), source_id_of(sample))
         except Exception:  # a callback that raises only prints; keep our own log instead
             log.exception("ingest callback failed")
 
-    def submit(self, key: str, payload: bytes) -> None:
-        """Queue one payload received on `key` (non-blocking; drops the oldest when full)."""
+    def submit(self, key: str, payload: bytes, source: str | None = None) -> None:
+        """Queue one payload received on `key` from publisher `source` (its Zenoh id, if
+        known); non-blocking, drops the oldest when full."""
         robot_id = robot_id_from_key(key, self._prefix)
         if robot_id is None or not is_valid_robot_id(robot_id):
             self._reject("bad_key", "?", key[:120])
+            return
+        if self._admit is not None and not self._admit(robot_id, source):
             return
         queue = self._queue_for(robot_id)
         if queue is None:

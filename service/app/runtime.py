@@ -18,7 +18,13 @@ from typing import TYPE_CHECKING, Any
 import zenoh
 
 from clients.fleet import InstanceInfo, RobotPatterns, SessionEntry
-from clients.keyexpr import alive_wildcard, robot_id_from_key, scan_wildcard
+from clients.keyexpr import (
+    alive_wildcard,
+    publisher_alive_wildcard,
+    publisher_from_alive_key,
+    robot_id_from_key,
+    scan_wildcard,
+)
 from clients.zenoh_config import build_zenoh_config
 from service.app import render
 from service.app.errors import ConflictError, SettingsError, TransportError
@@ -27,6 +33,7 @@ from service.app.ingest import Ingest
 from service.app.instance import FleetMember
 from service.app.mapper import Engine, MapperPool
 from service.app.metrics import Labels, Metrics, labels
+from service.app.publishers import PublisherGuard
 from service.app.sessions import SessionManager
 from service.app.settings import ServiceSettings, is_loopback_host
 from service.app.store import DataDir, MapStore
@@ -35,6 +42,8 @@ if TYPE_CHECKING:
     from service.app.foxglove import FoxgloveView
 
 log = logging.getLogger(__name__)
+
+DUPLICATE_PUBLISHERS = "mapping_duplicate_publishers_total"
 
 
 class MappingRuntime:
@@ -63,8 +72,23 @@ class MappingRuntime:
         self.fanout = PoseFanout(
             prefix, self.metrics, settings.http.sse_queue_depth, settings.http.sse_interval_s
         )
+        self.metrics.counter(
+            DUPLICATE_PUBLISHERS,
+            "Second publishers detected on a robot's key (their scans are refused).",
+        )
+        self.publishers = PublisherGuard(
+            on_refused=lambda robot: self.metrics.inc(
+                "mapping_scans_rejected_total", reason="duplicate_publisher"
+            ),
+            on_intruder=lambda robot: self.metrics.inc(DUPLICATE_PUBLISHERS, robot=robot),
+        )
         self.ingest = Ingest(
-            prefix, self.sessions, self.fanout.publish, self.metrics, settings.ingest
+            prefix,
+            self.sessions,
+            self.fanout.publish,
+            self.metrics,
+            settings.ingest,
+            admit=self.publishers.admit,
         )
         self.foxglove: FoxgloveView | None = None  # started with the runtime when configured
         self.patterns = RobotPatterns(settings.fleet.robots)
@@ -144,6 +168,14 @@ class MappingRuntime:
                     alive_wildcard(z.prefix, pattern), self._on_alive, history=True
                 )
             )
+            # One token per publisher of a robot: who else publishes on its key.
+            self._subscribers.append(
+                self.zenoh.liveliness().declare_subscriber(
+                    publisher_alive_wildcard(z.prefix, pattern),
+                    self._on_publisher_alive,
+                    history=True,
+                )
+            )
         log.info(
             "Zenoh session %s subscribed to %s",
             self.zenoh.zid(),
@@ -197,6 +229,13 @@ class MappingRuntime:
                 self._alive.add(robot_id)
             else:
                 self._alive.discard(robot_id)
+
+    def _on_publisher_alive(self, sample: Any) -> None:
+        """Per-publisher liveliness callback (`<prefix>/<id>/alive/<zid>`): bookkeeping."""
+        parsed = publisher_from_alive_key(str(sample.key_expr), self.settings.zenoh.prefix)
+        if parsed is not None:
+            robot_id, source = parsed
+            self.publishers.token_changed(robot_id, source, sample.kind == zenoh.SampleKind.PUT)
 
     def _sync_loop(self) -> None:
         """Group commit: fsync every recording that changed, once per interval."""

@@ -106,7 +106,10 @@ class FleetSettings(_Frozen):
 
 
 class SecuritySettings(_Frozen):
+    # Two scopes: the control token may do everything, the read token may only read.
     token: SecretStr | None = None
+    read_token: SecretStr | None = None
+    public_reads: bool = False
     allow_insecure_bind: bool = False
 
 
@@ -120,9 +123,17 @@ class ServiceSettings(_Frozen):
 
     @property
     def token(self) -> str | None:
+        """The control token (create, stop, reset, save, delete; also reads)."""
         if self.security.token is None:
             return None
         return self.security.token.get_secret_value() or None
+
+    @property
+    def read_token(self) -> str | None:
+        """The read token: when set, every read needs it (or the control token)."""
+        if self.security.read_token is None:
+            return None
+        return self.security.read_token.get_secret_value() or None
 
     def check(self) -> None:
         """Refuse settings that are unsafe or unusable; raises `SettingsError` with the reason."""
@@ -133,22 +144,109 @@ class ServiceSettings(_Frozen):
             check_instance_id(self.fleet.effective_instance_id(self.http.port))
         except (InvalidPrefixError, InvalidInstanceIdError) as err:
             raise SettingsError(str(err)) from err
-        if not is_loopback_host(self.http.host) and self.token is None:
+        for name, value in (("token", self.token), ("read token", self.read_token)):
+            if value is not None:
+                check_token_text(value, name)
+        if self.read_token is not None:
+            if self.token is None:
+                raise SettingsError(
+                    "a read token without a control token would leave control open while "
+                    "reads are closed: pass --token (or --token-file) too"
+                )
+            if self.read_token == self.token:
+                raise SettingsError("the read token must differ from the control token")
+            if self.security.public_reads:
+                raise SettingsError("--public-reads and a read token contradict each other")
+            if self.http.foxglove_port:
+                raise SettingsError(
+                    "the Foxglove view checks no token and would show every map to anyone who "
+                    "reaches it: with a read token, leave --foxglove-port off"
+                )
+        if is_loopback_host(self.http.host):
+            return
+        if self.token is None:
             if not self.security.allow_insecure_bind:
                 raise SettingsError(
                     f"refusing to bind HTTP to non-loopback address {self.http.host!r} without a "
-                    "token: pass --token (or set MAPPING_TOKEN), or --allow-insecure-bind"
+                    "token: pass --token-file (or set MAPPING_TOKEN), or --allow-insecure-bind"
                 )
             log.warning(
                 "HTTP bound to %s without a token: anyone who can reach it controls sessions",
                 self.http.host,
             )
+        elif self.read_token is None and not self.security.public_reads:
+            if not self.security.allow_insecure_bind:
+                raise SettingsError(
+                    f"refusing to bind HTTP to non-loopback address {self.http.host!r} with "
+                    "public reads (maps and robot tracks): pass --read-token-file (or set "
+                    "MAPPING_READ_TOKEN), or --public-reads if they may be public"
+                )
+            log.warning(
+                "HTTP bound to %s without a read token: anyone who can reach it reads every "
+                "map and trajectory",
+                self.http.host,
+            )
 
     def describe(self) -> dict[str, Any]:
-        """The effective settings for the start-up log, with the token redacted."""
+        """The effective settings for the start-up log, with the tokens redacted."""
         data = self.model_dump(mode="json")
         data["security"]["token"] = "<set>" if self.token else None
+        data["security"]["read_token"] = "<set>" if self.read_token else None
         return data
+
+
+_TOKEN_MIN_CHARS = 16
+
+
+def check_token_text(token: str, name: str) -> None:
+    """A token must fit in an HTTP header: visible ASCII, no spaces. Short ones are warned."""
+    if not token.isascii() or not token.isprintable() or " " in token:
+        raise SettingsError(f"the {name} must be visible ASCII without spaces")
+    if len(token) < _TOKEN_MIN_CHARS:
+        log.warning(
+            "the %s has %d characters: use at least %d random ones (e.g. `openssl rand -hex 24`)",
+            name,
+            len(token),
+            _TOKEN_MIN_CHARS,
+        )
+
+
+def read_token_file(path: str | Path, name: str) -> str:
+    """The token in `path`: its first line, surrounding whitespace removed."""
+    file = Path(path)
+    try:
+        text = file.read_text(encoding="utf-8")
+        mode = file.stat().st_mode
+    except (OSError, UnicodeDecodeError) as err:
+        raise SettingsError(f"cannot read the {name} file {str(path)!r}: {err}") from err
+    lines = text.strip().splitlines()
+    token = lines[0].strip() if lines else ""
+    if not token:
+        raise SettingsError(f"the {name} file {str(path)!r} is empty")
+    if mode & 0o077:
+        log.warning("the %s file %s is readable by other users (chmod 600 it)", name, path)
+    return token
+
+
+def _token_from(
+    flag_value: str | None,
+    flag_file: str | None,
+    env: Mapping[str, str],
+    env_name: str,
+    name: str,
+) -> str | None:
+    """One token from its flag, its file flag, `MAPPING_<X>` or `MAPPING_<X>_FILE`, in order."""
+    if flag_value is not None and flag_file is not None:
+        raise SettingsError(f"give the {name} once: either its flag or its file, not both")
+    if flag_file is not None:
+        return read_token_file(flag_file, name)
+    if flag_value is not None:
+        return flag_value
+    if (value := _env(env, env_name)) is not None:
+        return value
+    if (file := _env(env, env_name + "_FILE")) is not None:
+        return read_token_file(file, name)
+    return None
 
 
 def is_loopback_host(host: str) -> bool:
@@ -218,7 +316,21 @@ def build_settings(
             **from_env(poll_s="FLEET_POLL_S"),
         },
         "security": {
-            "token": getattr(args, "token", None) or _env(env, "TOKEN"),
+            "token": _token_from(
+                getattr(args, "token", None),
+                getattr(args, "token_file", None),
+                env,
+                "TOKEN",
+                "token",
+            ),
+            "read_token": _token_from(
+                getattr(args, "read_token", None),
+                getattr(args, "read_token_file", None),
+                env,
+                "READ_TOKEN",
+                "read token",
+            ),
+            "public_reads": bool(getattr(args, "public_reads", False)),
             "allow_insecure_bind": bool(getattr(args, "allow_insecure_bind", False)),
         },
     }

@@ -2,8 +2,12 @@
 // Plain browser JavaScript, no dependencies, no build step. Talks only to this origin:
 //   GET  /sessions, /sessions/{id}, /sessions/{id}/trajectory, /sessions/{id}/map.yaml,
 //        /sessions/{id}/map.png?trajectory=false&robot=false   (we draw those ourselves)
-//   SSE  /sessions/{id}/pose/stream   (event: pose, data: PoseView JSON)
-//   POST /sessions, /sessions/{id}/stop|reset|save   (Authorization: Bearer <token> if set)
+//   SSE  /sessions/{id}/pose/stream   (event: pose, data: PoseView JSON), read with fetch()
+//   POST /sessions, /sessions/{id}/stop|reset|save
+// Every request carries `Authorization: Bearer <token>` when a token is set: the Token field,
+// or `?token=` in the page's address (kept in this browser, then removed from the address).
+// The pose stream is read with fetch() rather than EventSource, which cannot send that header
+// (a token in the stream's URL would end up in logs).
 "use strict";
 
 (() => {
@@ -93,11 +97,22 @@
     }
   }
 
-  async function api(method, path, body) {
-    const headers = { Accept: "application/json" };
+  // A token handed over in the address (`/?token=...`): keep it, and take it out of the
+  // address bar and the history entry.
+  (() => {
+    const url = new URL(location.href);
+    const given = url.searchParams.get("token");
+    if (given === null) return;
+    if (given.trim()) localStorage.setItem(TOKEN_KEY, given.trim());
+    url.searchParams.delete("token");
+    history.replaceState(null, "", url);
+  })();
+
+  async function api(method, path, body, extra = {}) {
+    const headers = { Accept: extra.accept || "application/json" };
     const token = localStorage.getItem(TOKEN_KEY);
     if (token) headers.Authorization = `Bearer ${token}`;
-    const init = { method, headers, cache: "no-store" };
+    const init = { method, headers, cache: "no-store", signal: extra.signal };
     if (body !== undefined) {
       headers["Content-Type"] = "application/json";
       init.body = JSON.stringify(body);
@@ -150,15 +165,28 @@
   // ------------------------------------------------------------------------------------------
   // Sessions
 
+  let askedForToken = false;
+  function askForToken(err) {
+    setConn("down", "token needed");
+    document.body.dataset.needsToken = "1";
+    if (askedForToken) return;
+    askedForToken = true;
+    say(`${explain(err)} This service needs a token to read.`, "error");
+    el.token.focus();
+  }
+
   async function refreshSessions() {
     let list;
     try {
       const r = await api("GET", "/sessions");
       list = (await r.json()).sessions || [];
     } catch (err) {
-      setConn("down", "service unreachable");
+      if (err instanceof ApiError && (err.status === 401 || err.status === 403)) askForToken(err);
+      else setConn("down", "service unreachable");
       return;
     }
+    askedForToken = false;
+    delete document.body.dataset.needsToken;
     state.sessions = list;
     renderPicker();
     if (state.sessionId === null) {
@@ -311,26 +339,72 @@
   // ------------------------------------------------------------------------------------------
   // Poses
 
+  // The pose stream over fetch(): Server-Sent Events parsed here, reconnecting with backoff
+  // like EventSource would. `state.es` is {close()} so the callers need not know.
   function openStream(id) {
-    const es = new EventSource(sessionPath(id, "pose/stream"));
+    const controller = new AbortController();
+    const es = { close: () => controller.abort() };
     state.es = es;
     setConn("wait", "connecting");
-    es.onopen = () => setConn("live", "live");
-    es.onerror = () => {
-      if (state.es !== es) return;
-      setConn(es.readyState === EventSource.CLOSED ? "down" : "wait", "reconnecting");
-    };
-    es.addEventListener("pose", (ev) => {
-      if (state.es !== es) return;
-      let p;
-      try {
-        p = JSON.parse(ev.data);
-      } catch (_) {
-        return;
+    (async () => {
+      let delayMs = 1000;
+      while (state.es === es) {
+        try {
+          const r = await api("GET", sessionPath(id, "pose/stream"), undefined, {
+            signal: controller.signal,
+            accept: "text/event-stream",
+          });
+          setConn("live", "live");
+          delayMs = 1000;
+          await readEvents(r, (event, data) => {
+            if (state.es !== es || event !== "pose") return;
+            let p;
+            try {
+              p = JSON.parse(data);
+            } catch (_) {
+              return;
+            }
+            setConn("live", "live");
+            acceptPose(p);
+          });
+        } catch (err) {
+          if (controller.signal.aborted) return;
+          if (err instanceof ApiError && (err.status === 401 || err.status === 403)) {
+            askForToken(err);
+          }
+        }
+        if (state.es !== es) return;
+        setConn("wait", "reconnecting");
+        await new Promise((resolve) => setTimeout(resolve, delayMs));
+        delayMs = Math.min(2 * delayMs, 15000);
       }
-      setConn("live", "live");
-      acceptPose(p);
-    });
+    })();
+  }
+
+  async function readEvents(response, onEvent) {
+    const reader = response.body.pipeThrough(new TextDecoderStream()).getReader();
+    let buffer = "";
+    for (;;) {
+      const { value, done } = await reader.read();
+      if (done) return;
+      buffer += value.replace(/\r\n?/g, "\n");
+      let end;
+      while ((end = buffer.indexOf("\n\n")) >= 0) {
+        const block = buffer.slice(0, end);
+        buffer = buffer.slice(end + 2);
+        let event = "message";
+        const data = [];
+        for (const line of block.split("\n")) {
+          if (line.startsWith(":")) continue; // keep-alive comment
+          const colon = line.indexOf(":");
+          const field = colon < 0 ? line : line.slice(0, colon);
+          const text = colon < 0 ? "" : line.slice(colon + 1).replace(/^ /, "");
+          if (field === "event") event = text;
+          else if (field === "data") data.push(text);
+        }
+        if (data.length) onEvent(event, data.join("\n"));
+      }
+    }
   }
 
   async function loadTrajectory(id) {
@@ -819,6 +893,17 @@
     if (t) localStorage.setItem(TOKEN_KEY, t);
     else localStorage.removeItem(TOKEN_KEY);
     say(t ? "Token saved in this browser." : "Token cleared.");
+    // Reconnect with the new token: the stream, the session list and the map.
+    askedForToken = false;
+    if (state.es) {
+      state.es.close();
+      state.es = null;
+    }
+    state.nextMapAt = 0;
+    refreshSessions().then(() => {
+      if (state.sessionId && !state.traj.length) loadTrajectory(state.sessionId);
+      refreshMap();
+    });
   });
 
   async function control(action, button) {
@@ -851,19 +936,34 @@
     }
   }
 
+  // Saved files are fetched with the token (a plain link could not send it) and handed to
+  // the browser as a download.
+  function savedLink(url, text, filename) {
+    const a = document.createElement("a");
+    a.href = url;
+    a.textContent = text;
+    a.addEventListener("click", async (ev) => {
+      ev.preventDefault();
+      try {
+        const blob = await (await api("GET", url)).blob();
+        const local = document.createElement("a");
+        local.href = URL.createObjectURL(blob);
+        local.download = filename;
+        local.click();
+        setTimeout(() => URL.revokeObjectURL(local.href), 60000);
+      } catch (err) {
+        say(explain(err), "error");
+      }
+    });
+    return a;
+  }
+
   function showSaved(saved) {
     el.savedCard.hidden = false;
-    const a = document.createElement("a");
-    a.href = saved.urls.png;
-    a.target = "_blank";
-    a.textContent = `${saved.map_id} · v${saved.version}`;
-    const links = ["pgm", "yaml"].map((k) => {
-      const l = document.createElement("a");
-      l.href = saved.urls[k];
-      l.textContent = k;
-      return l;
-    });
-    el.savedText.replaceChildren(a, " (png) · ", links[0], " · ", links[1]);
+    const base = `${saved.map_id}-v${saved.version}`;
+    const png = savedLink(saved.urls.png, `${saved.map_id} · v${saved.version}`, `${base}.png`);
+    const links = ["pgm", "yaml"].map((k) => savedLink(saved.urls[k], k, `${base}.${k}`));
+    el.savedText.replaceChildren(png, " (png) · ", links[0], " · ", links[1]);
   }
 
   el.stop.addEventListener("click", () => control("stop", el.stop));

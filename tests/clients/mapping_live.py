@@ -45,9 +45,12 @@ def require_service() -> None:
 class LiveService:
     """`mapping-service serve` in a subprocess. Restartable on the same ports and data dir."""
 
-    def __init__(self, data_dir: Path, token: str | None = None) -> None:
+    def __init__(
+        self, data_dir: Path, token: str | None = None, read_token: str | None = None
+    ) -> None:
         self.data_dir = data_dir
         self.token = token
+        self.read_token = read_token
         self.http_port = free_port()
         self.zenoh_endpoint = f"tcp/127.0.0.1:{free_port()}"
         self.url = f"http://127.0.0.1:{self.http_port}"
@@ -67,7 +70,9 @@ class LiveService:
         ]
         if self.token:
             cmd += ["--token", self.token]
-        env = {k: v for k, v in os.environ.items() if k != "MAPPING_TOKEN"}
+        if self.read_token:
+            cmd += ["--read-token", self.read_token]
+        env = {k: v for k, v in os.environ.items() if not k.startswith("MAPPING_")}
         log = self.log_path.open("ab")
         self.proc = subprocess.Popen(
             cmd, stdout=log, stderr=subprocess.STDOUT, cwd=REPO_ROOT, env=env

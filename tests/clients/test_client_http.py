@@ -265,7 +265,7 @@ def test_live_session_lifecycle(live: LiveService, tmp_path: Path) -> None:
         assert session.id in [s.id for s in client.list_sessions()]
         with pytest.raises(MappingError) as no_pose:
             client.get_pose(session.id)
-        assert no_pose.value.status == 404
+        assert (no_pose.value.status, no_pose.value.code) == (409, "no_pose_yet")
 
         with ScanFeeder(live.zenoh_endpoint, "live-1"):
             wait_for(lambda: client.get_session(session.id).poses >= 10, 30, "10 poses")

@@ -125,7 +125,7 @@ def test_mapctl_end_to_end(live: LiveService, tmp_path: Path) -> None:
     assert sid in done.stdout
 
     done = ctl("pose", sid)
-    assert done.returncode == 1  # 404: no pose yet
+    assert done.returncode == 1  # 409: no pose yet
     assert_one_line_error(done)
     done = ctl("stop", "no-such", env=auth)
     assert done.returncode == 1

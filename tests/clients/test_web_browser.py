@@ -18,7 +18,14 @@ from typing import Any
 
 import pytest
 from conftest import REPO_ROOT
-from mapping_live import BIN, SHARED_TOKEN, LiveService, ScanFeeder, shared_service, wait_for
+from mapping_live import (
+    BIN,
+    SHARED_TOKEN,
+    LiveService,
+    ScanFeeder,
+    shared_service,
+    wait_for,
+)
 
 from clients import MappingClient
 
@@ -187,3 +194,53 @@ def test_live_map_page(
         assert not external, f"the page fetched external URLs: {external}"
         log.info("browser test drove the page with %s", source)
     assert (ARTIFACTS / "web.png").stat().st_size > 10_000
+
+
+@pytest.mark.timeout(120)
+def test_live_map_page_with_a_read_token(tmp_path: Path) -> None:
+    """A service with a read token: the page asks for a token, then takes `?token=` (and
+    drops it from the address), draws the map and follows the pose stream over fetch()."""
+    sync_playwright = require_browser()
+    control, read = "control-token-0123456789", "read-token-0123456789abc"
+    service = LiveService(tmp_path / "data", token=control, read_token=read)
+    service.start()
+    with ExitStack() as stack:
+        stack.callback(service.stop)
+        client = stack.enter_context(MappingClient(service.url, token=control))
+        session = client.create_session("web-read-1")
+        stack.enter_context(ScanFeeder(service.zenoh_endpoint, "web-read-1"))
+        wait_for(lambda: client.get_session(session.id).poses >= 5, 30, "5 poses")
+
+        pw = stack.enter_context(sync_playwright())
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+        stack.callback(browser.close)
+        page = browser.new_page(viewport={"width": 1280, "height": 800})
+        js_errors: list[str] = []
+        page.on("pageerror", lambda err: js_errors.append(str(err)))
+        urls: list[str] = []
+        page.on("request", lambda req: urls.append(req.url))
+
+        page.goto(f"{service.url}/?session={session.id}")
+        page.wait_for_function("document.body.dataset.needsToken === '1'", timeout=20_000)
+        assert "token" in page.inner_text("#message").lower()
+
+        page.goto(f"{service.url}/?token={read}&session={session.id}")
+        page.wait_for_function("document.body.dataset.mapLoaded !== undefined", timeout=30_000)
+        page.wait_for_function(
+            "document.getElementById('conn-text').textContent === 'live'", timeout=30_000
+        )
+        seq0 = int(page.inner_text("#pose-seq"))
+        page.wait_for_function(
+            f"Number(document.getElementById('pose-seq').textContent) >= {seq0 + 20}",
+            timeout=30_000,
+        )
+        assert "token=" not in page.url
+        # The token went in headers only: no request after the page load carries it.
+        after_load = urls[urls.index(f"{service.url}/?token={read}&session={session.id}") + 1 :]
+        assert not [u for u in after_load if read in u], after_load
+        # The read token cannot control: the page says so.
+        page.click("#btn-save")
+        page.wait_for_function(
+            "document.getElementById('message').textContent.includes('403')", timeout=10_000
+        )
+        assert not js_errors, js_errors

@@ -53,19 +53,28 @@ def alive_keys(session: zenoh.Session) -> list[str]:
 
 def test_scans_are_numbered_stamped_and_published(session: zenoh.Session) -> None:
     received: list[Scan] = []
-    sub = session.declare_subscriber(
-        "robots/*/scan", lambda s: received.append(decode_scan(s.payload.to_bytes()))
-    )
+    sources: list[tuple[str, int]] = []
+
+    def on_scan(sample: zenoh.Sample) -> None:
+        received.append(decode_scan(sample.payload.to_bytes()))
+        info = sample.source_info
+        assert info is not None
+        sources.append((str(info.source_id.zid), info.source_sn))
+
+    sub = session.declare_subscriber("robots/*/scan", on_scan)
     with ScanPublisher(session, "bot-7", "robots") as pub:
         assert pub.key == "robots/bot-7/scan"
-        assert alive_keys(session) == ["robots/bot-7/alive"]
+        # The robot's presence, and this publisher's own token (a second agent is visible).
+        zid = str(session.zid())
+        assert sorted(alive_keys(session)) == ["robots/bot-7/alive", f"robots/bot-7/alive/{zid}"]
         for i in range(50):
             assert pub.submit(make_scan(i))
-        wait_for(lambda: len(received) == 50)
-        assert pub.counters.published == 50
+        # A local subscriber sees a scan before put() returns and the counter moves.
+        wait_for(lambda: len(received) == 50 and pub.counters.published == 50)
         assert pub.counters.dropped == 0
     sub.undeclare()
     assert [s.seq for s in received] == list(range(50))
+    assert sources == [(zid, seq) for seq in range(50)]  # source id and sequence on every scan
     assert {s.robot_id for s in received} == {"bot-7"}
     assert received[3] == dataclasses.replace(make_scan(3), robot_id="bot-7", seq=3)
     assert alive_keys(session) == []  # the token went with close()
@@ -74,7 +83,7 @@ def test_scans_are_numbered_stamped_and_published(session: zenoh.Session) -> Non
 def test_prefix_is_configurable(session: zenoh.Session) -> None:
     with ScanPublisher(session, "bot-8", "site-a/robots") as pub:
         assert pub.key == "site-a/robots/bot-8/scan"
-        assert alive_keys_for(session, "site-a/**") == ["site-a/robots/bot-8/alive"]
+        assert alive_keys_for(session, "site-a/*/*/alive") == ["site-a/robots/bot-8/alive"]
 
 
 def alive_keys_for(session: zenoh.Session, key: str) -> list[str]:
@@ -93,7 +102,7 @@ class _GatedPublisher:
         self.gate = threading.Event()
         self.payloads: list[bytes] = []
 
-    def put(self, payload: bytes) -> None:
+    def put(self, payload: bytes, **_kw: Any) -> None:
         self.gate.wait()
         self.payloads.append(payload)
 
@@ -110,6 +119,9 @@ class _FakeSession:
 
     def liveliness(self) -> _FakeSession:
         return self
+
+    def zid(self) -> str:
+        return "ab" * 16
 
     def declare_token(self, key: str) -> _GatedPublisher:
         return _GatedPublisher()

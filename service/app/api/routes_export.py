@@ -11,6 +11,7 @@ from fastapi.responses import StreamingResponse
 
 from clients.recording import RecordingError, read_messages
 from clients.wire import Pose, Scan
+from service.app.api.deps import Read
 from service.app.api.routes_sessions import NO_STORE, SessionDep
 from service.app.api.schemas import errors
 from service.mcapio import stream_mcap
@@ -26,6 +27,7 @@ MCAP_MEDIA_TYPE = "application/x-mcap"
     "/{session_id}/recording.mcap",
     response_class=StreamingResponse,
     response_model=None,
+    dependencies=Read,
     summary="Recording as MCAP (ROS 2 schemas)",
     description="Every scan (`/scan`, sensor_msgs/msg/LaserScan), every pose (`/pose`, "
     "geometry_msgs/msg/PoseStamped, and `/tf`, tf2_msgs/msg/TFMessage map -> "
@@ -34,7 +36,7 @@ MCAP_MEDIA_TYPE = "application/x-mcap"
     "recorded when the download reaches it.",
     responses={
         200: {"content": {MCAP_MEDIA_TYPE: {}}, "description": "an MCAP file"},
-        **errors(404, 422),
+        **errors(401, 404, 422),
     },
 )
 def read_recording_mcap(session: SessionDep) -> StreamingResponse:

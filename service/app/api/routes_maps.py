@@ -7,10 +7,10 @@ from typing import Annotated
 from fastapi import APIRouter, Path
 from fastapi.responses import FileResponse
 
-from service.app.api.deps import Runtime
+from service.app.api.deps import Read, Runtime
 from service.app.api.schemas import ID_PATTERN, SavedMap, SavedMapList, errors
 
-router = APIRouter(prefix="/maps", tags=["maps"])
+router = APIRouter(prefix="/maps", tags=["maps"], dependencies=Read)
 
 MapId = Annotated[str, Path(pattern=ID_PATTERN, max_length=64, description="saved map id")]
 Version = Annotated[int, Path(ge=1, le=1_000_000, description="version, from 1")]
@@ -21,6 +21,7 @@ Version = Annotated[int, Path(ge=1, le=1_000_000, description="version, from 1")
     response_model=SavedMapList,
     summary="List saved maps",
     description="Every saved map version, by map id then version.",
+    responses=errors(401),
 )
 def list_maps(runtime: Runtime) -> SavedMapList:
     return SavedMapList(maps=[SavedMap.of(m) for m in runtime.maps.list()])
@@ -36,7 +37,7 @@ def _file(runtime: Runtime, map_id: str, version: int, name: str, media_type: st
     response_model=None,
     summary="Saved map as PNG",
     description="The PNG of one saved map version (white free, black occupied, grey unknown).",
-    responses={200: {"content": {"image/png": {}}, "description": "PNG"}, **errors(404, 422)},
+    responses={200: {"content": {"image/png": {}}, "description": "PNG"}, **errors(401, 404, 422)},
 )
 def saved_png(map_id: MapId, version: Version, runtime: Runtime) -> FileResponse:
     return _file(runtime, map_id, version, "map.png", "image/png")
@@ -50,7 +51,7 @@ def saved_png(map_id: MapId, version: Version, runtime: Runtime) -> FileResponse
     description="The PGM image of one saved map version, to pair with its `map.yaml`.",
     responses={
         200: {"content": {"image/x-portable-graymap": {}}, "description": "PGM"},
-        **errors(404, 422),
+        **errors(401, 404, 422),
     },
 )
 def saved_pgm(map_id: MapId, version: Version, runtime: Runtime) -> FileResponse:
@@ -65,7 +66,7 @@ def saved_pgm(map_id: MapId, version: Version, runtime: Runtime) -> FileResponse
     description="Resolution, origin and thresholds of one saved map version; image `map.pgm`.",
     responses={
         200: {"content": {"application/yaml": {}}, "description": "YAML"},
-        **errors(404, 422),
+        **errors(401, 404, 422),
     },
 )
 def saved_yaml(map_id: MapId, version: Version, runtime: Runtime) -> FileResponse:

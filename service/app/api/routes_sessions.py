@@ -11,7 +11,8 @@ from starlette.responses import StreamingResponse
 
 from clients.wire import Pose
 from service.app import render
-from service.app.api.deps import Control, Runtime, Sessions, get_sessions
+from service.app.api.bodies import JsonBodyRoute
+from service.app.api.deps import Control, Read, ReadOrQuery, Runtime, Sessions, get_sessions
 from service.app.api.schemas import (
     ID_PATTERN,
     PoseView,
@@ -22,10 +23,10 @@ from service.app.api.schemas import (
     Trajectory,
     errors,
 )
-from service.app.errors import NotFoundError
+from service.app.errors import ConflictError
 from service.app.sessions import MappingSession, SessionManager
 
-router = APIRouter(prefix="/sessions", tags=["sessions"])
+router = APIRouter(prefix="/sessions", tags=["sessions"], route_class=JsonBodyRoute)
 
 SessionId = Annotated[
     str, Path(pattern=ID_PATTERN, max_length=64, description="a session id from POST /sessions")
@@ -49,7 +50,7 @@ SessionDep = Annotated[MappingSession, Depends(get_session)]
     description="Start mapping `robot_id`: its scans are recorded and mapped from now on. "
     "One active session per robot (409 otherwise), on an instance whose robot patterns match "
     "it and not while another instance maps it (409).",
-    responses=errors(401, 409, 413, 422),
+    responses=errors(400, 401, 403, 409, 413, 422),
 )
 def create_session(body: SessionCreate, sessions: Sessions, runtime: Runtime) -> Session:
     runtime.check_claim(body.robot_id)
@@ -60,6 +61,8 @@ def create_session(body: SessionCreate, sessions: Sessions, runtime: Runtime) ->
 @router.get(
     "",
     response_model=SessionList,
+    dependencies=Read,
+    responses=errors(401),
     summary="List sessions",
     description="Every session of this service, active and stopped, oldest first.",
 )
@@ -70,9 +73,10 @@ def list_sessions(sessions: Sessions) -> SessionList:
 @router.get(
     "/{session_id}",
     response_model=Session,
+    dependencies=Read,
     summary="Get a session",
     description="State, counters and last pose of one session.",
-    responses=errors(404, 422),
+    responses=errors(401, 404, 422),
 )
 def read_session(session: SessionDep) -> Session:
     return Session.of(session.info())
@@ -86,7 +90,7 @@ def read_session(session: SessionDep) -> Session:
     dependencies=Control,
     summary="Delete a session",
     description="Stop the session and delete its recording and map. Saved maps are kept.",
-    responses=errors(401, 404, 422),
+    responses=errors(401, 403, 404, 422),
 )
 def delete_session(session_id: SessionId, sessions: Sessions, runtime: Runtime) -> Response:
     sessions.delete(session_id)
@@ -101,7 +105,7 @@ def delete_session(session_id: SessionId, sessions: Sessions, runtime: Runtime) 
     summary="Stop a session",
     description="Stop mapping; the map, trajectory and recording stay available. "
     "The robot may then get a new session.",
-    responses=errors(401, 404, 422),
+    responses=errors(401, 403, 404, 422),
 )
 def stop_session(session_id: SessionId, sessions: Sessions) -> Session:
     return Session.of(sessions.stop(session_id).info())
@@ -113,7 +117,7 @@ def stop_session(session_id: SessionId, sessions: Sessions) -> Session:
     dependencies=Control,
     summary="Reset a session",
     description="Forget the map and the trajectory; the next scan defines a new map frame.",
-    responses=errors(401, 404, 422),
+    responses=errors(401, 403, 404, 422),
 )
 def reset_session(session_id: SessionId, sessions: Sessions) -> Session:
     return Session.of(sessions.reset(session_id).info())
@@ -127,7 +131,7 @@ def reset_session(session_id: SessionId, sessions: Sessions) -> Session:
     summary="Save the map",
     description="Store a snapshot of the map (PNG, PGM + YAML) as the next version of map "
     "`map_id` (= the session id); download it later from `/maps`.",
-    responses=errors(401, 404, 422),
+    responses=errors(401, 403, 404, 422),
 )
 def save_session(session_id: SessionId, sessions: Sessions) -> SavedMap:
     return SavedMap.of(sessions.save(session_id))
@@ -136,26 +140,29 @@ def save_session(session_id: SessionId, sessions: Sessions) -> SavedMap:
 @router.get(
     "/{session_id}/pose",
     response_model=PoseView,
+    dependencies=Read,
     summary="Current pose",
-    description="The latest pose (map frame: metres, radians). 404 until the first pose.",
-    responses=errors(404, 422),
+    description="The latest pose (map frame: metres, radians). `404` (`not_found`): no such "
+    "session; `409` (`no_pose_yet`): the session exists but has no pose yet (retry later).",
+    responses=errors(401, 404, 409, 422),
 )
 def read_pose(session: SessionDep) -> PoseView:
     pose = session.last_pose
     if pose is None:
-        raise NotFoundError(f"session {session.id} has no pose yet")
+        raise ConflictError(f"session {session.id} has no pose yet", code="no_pose_yet")
     return PoseView.of(pose)
 
 
 @router.get(
     "/{session_id}/trajectory",
     response_model=Trajectory,
+    dependencies=Read,
     summary="Trajectory",
     description="Every pose of the session in order, as JSON, or as TUM text "
     "(`stamp x y z qx qy qz qw`, readable by evo) with `?format=tum`.",
     responses={
         200: {"content": {"text/plain": {"schema": {"type": "string"}}}},
-        **errors(404, 422),
+        **errors(401, 404, 422),
     },
 )
 def read_trajectory(
@@ -179,10 +186,11 @@ _PNG: dict[int | str, dict[str, Any]] = {
     "/{session_id}/map.png",
     response_class=Response,
     response_model=None,
+    dependencies=Read,
     summary="Map as PNG",
     description="The occupancy map (white free, black occupied, grey unknown), optionally with "
     "the trajectory and the robot drawn on it.",
-    responses={**_PNG, **errors(404, 422)},
+    responses={**_PNG, **errors(401, 404, 422)},
 )
 def read_map_png(
     session: SessionDep,
@@ -198,11 +206,12 @@ def read_map_png(
     "/{session_id}/map.pgm",
     response_class=Response,
     response_model=None,
+    dependencies=Read,
     summary="Map as PGM (ROS map_server)",
     description="The occupancy map as a binary PGM, to pair with `map.yaml`.",
     responses={
         200: {"content": {"image/x-portable-graymap": {}}, "description": "PGM"},
-        **errors(404, 422),
+        **errors(401, 404, 422),
     },
 )
 def read_map_pgm(session: SessionDep) -> Response:
@@ -212,18 +221,19 @@ def read_map_pgm(session: SessionDep) -> Response:
 
 @router.get(
     "/{session_id}/map.yaml",
-    response_class=PlainTextResponse,
+    response_class=Response,
     response_model=None,
+    dependencies=Read,
     summary="Map metadata (ROS map_server YAML)",
     description="Resolution, origin [x, y, yaw] and thresholds; the image is `map.pgm`.",
     responses={
         200: {"content": {"application/yaml": {}}, "description": "YAML"},
-        **errors(404, 422),
+        **errors(401, 404, 422),
     },
 )
 def read_map_yaml(session: SessionDep) -> Response:
     text = render.map_yaml(session.map_image())
-    return PlainTextResponse(text, media_type="application/yaml", headers=NO_STORE)
+    return Response(text, media_type="application/yaml", headers=NO_STORE)
 
 
 def sse_pose_frame(pose: Pose) -> bytes:
@@ -235,23 +245,25 @@ def sse_pose_frame(pose: Pose) -> bytes:
 @router.get(
     "/{session_id}/pose/stream",
     response_class=StreamingResponse,
+    dependencies=ReadOrQuery,
     summary="Live poses (Server-Sent Events)",
     description="`event: pose` with a `PoseView` JSON as `data` for every new pose, starting "
     "with the current one. Poses that arrive together are written together (at most one write "
     "per `MAPPING_SSE_INTERVAL_S`, default 0.2 s). A slow reader loses the oldest poses "
     "(counted in /metrics), never slows the service. Comment lines (`: ping`) keep idle "
-    "connections open.",
+    "connections open. With a read token, the token may also be given as `?access_token=` "
+    "(EventSource cannot set headers).",
     responses={
         200: {
             "content": {
                 "text/event-stream": {
-                    "schema": {"type": "string"},
+                    # No `schema`: under OpenAPI 3.2 rules it would describe the whole stream
                     "example": 'event: pose\ndata: {"session_id": "s-...", "x": 1.0}\n\n',
                 }
             },
             "description": "an endless event stream",
         },
-        **errors(404, 422),
+        **errors(401, 404, 422),
     },
 )
 async def stream_poses(

@@ -20,7 +20,8 @@ ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 class SessionCreate(BaseModel):
     """Start mapping a robot. Scans already arriving on `<prefix>/<robot_id>/scan` are used."""
 
-    model_config = ConfigDict(extra="forbid")
+    # strict: "0.05" is not a number and "yes" is not a boolean (an int is still a number).
+    model_config = ConfigDict(extra="forbid", strict=True)
 
     robot_id: str = Field(pattern=ID_PATTERN, max_length=64, examples=["amr-07"])
     resolution_m: float = Field(0.05, ge=0.01, le=1.0, description="map cell size in metres")
@@ -141,6 +142,16 @@ class RobotHealth(BaseModel):
     queue_depth: int
     last_scan_ns: int = Field(description="host time of the last received scan, 0 = never")
     session_id: str | None = Field(description="the robot's active session, if any")
+    publishers: int = Field(
+        0, description="live publishers on the robot's key (per-publisher liveliness tokens)"
+    )
+    duplicate_publisher: bool = Field(
+        False,
+        description="a second publisher uses this robot's key now: its scans are refused",
+    )
+    duplicate_scans_refused: int = Field(
+        0, description="scans refused because they came from a second publisher"
+    )
 
 
 class ZenohHealth(BaseModel):
@@ -164,14 +175,30 @@ class FleetHealth(BaseModel):
     conflicts: list[FleetConflict] = Field(description="other instances claiming our robots")
 
 
+HealthStatus = Literal["ok", "degraded"]
+
+
 class Health(BaseModel):
-    status: Literal["ok", "degraded"]
+    """The full health report (with the read token, or when reads are open)."""
+
+    status: HealthStatus
     uptime_s: float
     sessions_active: int
     sessions_total: int
     zenoh: ZenohHealth
     robots: list[RobotHealth]
     fleet: FleetHealth
+    warnings: list[str] = Field(
+        default_factory=list, description="why the status is not ok, one line each"
+    )
+
+
+class HealthSummary(BaseModel):
+    """Health without a read token: the status only (no robot ids, no sessions)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    status: HealthStatus
 
 
 class FleetSession(BaseModel):
@@ -200,17 +227,41 @@ class Fleet(BaseModel):
 
 class ErrorBody(BaseModel):
     detail: str = Field(description="one-line reason")
+    code: str = Field(
+        description="machine-readable reason: e.g. not_found, no_pose_yet, unauthorized, "
+        "forbidden, conflict, validation_error, invalid_utf8, json_too_deep, invalid_json, "
+        "payload_too_large, method_not_allowed"
+    )
 
 
-ERRORS = {
-    400: {"model": ErrorBody, "description": "invalid input"},
-    401: {"model": ErrorBody, "description": "missing or wrong bearer token"},
-    404: {"model": ErrorBody, "description": "no such resource"},
-    409: {"model": ErrorBody, "description": "conflicts with the current state"},
-    413: {"model": ErrorBody, "description": "request body too large"},
-    422: {"model": ErrorBody, "description": "request does not validate"},
+ERRORS: dict[int, dict[str, str]] = {
+    400: {
+        "description": "the body is not UTF-8 JSON (`invalid_utf8`, `invalid_json`) or nests "
+        "deeper than 32 levels (`json_too_deep`)",
+    },
+    401: {"description": "missing or wrong bearer token"},
+    403: {"description": "the read token on a control operation"},
+    404: {"description": "no such resource"},
+    409: {"description": "conflicts with the current state (`conflict`, `no_pose_yet`)"},
+    413: {"description": "request body too large"},
+    422: {"description": "request does not validate"},
+    503: {"description": "Zenoh is closed or failing (`zenoh_unavailable`)"},
 }
+
+ERROR_SCHEMA_REF = "#/components/schemas/ErrorBody"
 
 
 def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
-    return {code: dict(ERRORS[code]) for code in codes}
+    """Error responses of a route, always documented as `application/json`.
+
+    FastAPI would document an error `model` under the route's own media type (`text/plain`
+    for a YAML route, `text/event-stream` for SSE), but errors are sent as JSON; so the content
+    is spelled out (`create_app` puts ErrorBody into the components).
+    """
+    return {
+        code: {
+            "description": ERRORS[code]["description"],
+            "content": {"application/json": {"schema": {"$ref": ERROR_SCHEMA_REF}}},
+        }
+        for code in codes
+    }

@@ -3,6 +3,7 @@
 - `SimRobot`: wire `Scan`s of a robot driving the synthetic building (sensor_agent.sim), with
   the ground truth, on a simulated 40 Hz clock (not the wall clock);
 - `ServiceProc`: `mapping-service serve` as a real subprocess on free loopback ports;
+- `agent`: a real `sensor-agent --emulate` process publishing to a service;
 - `zenoh_peer`: a test-side Zenoh session connected to a service;
 - `malformed_payloads`: a deterministic mix of bad scan payloads, with their expected reasons.
 """
@@ -43,6 +44,9 @@ from service.app.settings import (
 )
 
 SCAN_PERIOD_NS = 25_000_000
+_TOKEN_VARIABLES = frozenset(
+    ("MAPPING_TOKEN", "MAPPING_TOKEN_FILE", "MAPPING_READ_TOKEN", "MAPPING_READ_TOKEN_FILE")
+)
 
 
 @lru_cache(maxsize=4)
@@ -132,14 +136,21 @@ class ServiceProc:
         data_dir: Path,
         token: str | None = None,
         prefix: str = "robots",
+        *,
         extra_args: Sequence[str] = (),
+        zenoh_endpoint: str | None = None,
+        listen_flag: bool = True,
     ) -> None:
+        """`extra_args` go to `serve` (e.g. --robots, --instance-id, --zenoh-config);
+        `listen_flag=False` leaves listening to a `--zenoh-config` in `extra_args` (whose
+        endpoint is then `zenoh_endpoint`)."""
         self.data_dir = data_dir
         self.token = token
         self.prefix = prefix
-        self.extra_args = list(extra_args)  # e.g. --robots, --instance-id, --zenoh-connect
+        self.extra_args = list(extra_args)
+        self.listen_flag = listen_flag
         self.http_port = free_port()
-        self.zenoh_endpoint = f"tcp/127.0.0.1:{free_port()}"
+        self.zenoh_endpoint = zenoh_endpoint or f"tcp/127.0.0.1:{free_port()}"
         self.url = f"http://127.0.0.1:{self.http_port}"
         self.log_path = data_dir.parent / f"service-{self.http_port}.log"
         self.proc: subprocess.Popen[bytes] | None = None
@@ -159,15 +170,16 @@ class ServiceProc:
             str(self.http_port),
             "--data-dir",
             str(self.data_dir),
-            "--zenoh-listen",
-            self.zenoh_endpoint,
             "--prefix",
             self.prefix,
+            *self.extra_args,
         ]
+        if self.listen_flag:
+            cmd += ["--zenoh-listen", self.zenoh_endpoint]
         if self.token:
             cmd += ["--token", self.token]
-        cmd += self.extra_args + (args or [])
-        full_env = {k: v for k, v in os.environ.items() if k != "MAPPING_TOKEN"}
+        cmd += args or []
+        full_env = {k: v for k, v in os.environ.items() if k not in _TOKEN_VARIABLES}
         full_env.update(env or {})
         with self.log_path.open("ab") as log:
             self.proc = subprocess.Popen(
@@ -195,7 +207,7 @@ class ServiceProc:
         return data
 
     def get(self, path: str) -> httpx.Response:
-        return httpx.get(self.url + path, timeout=10.0)
+        return httpx.get(self.url + path, timeout=10.0, headers=self.headers())
 
     def json(self, path: str) -> dict[str, object]:
         r = self.get(path)
@@ -234,6 +246,46 @@ class ServiceProc:
             return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
         except OSError:
             return "(no log)"
+
+
+@contextlib.contextmanager
+def agent(
+    svc: ServiceProc,
+    robot_id: str,
+    world_seed: int,
+    log: Path,
+    zenoh_args: Sequence[str] | None = None,
+) -> Iterator[None]:
+    """A real `sensor-agent --emulate` connected to `svc` (or configured by `zenoh_args`)."""
+    with log.open("wb") as out:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "sensor_agent.cli",
+                "--robot-id",
+                robot_id,
+                "--emulate",
+                "--world-seed",
+                str(world_seed),
+                *(["--zenoh-connect", svc.zenoh_endpoint] if zenoh_args is None else zenoh_args),
+                "--stats-interval",
+                "0",
+            ],
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            cwd=REPO_ROOT,
+        )
+    try:
+        yield
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
 
 
 @contextlib.contextmanager
@@ -315,12 +367,14 @@ def metric_sum(metrics: dict[str, float], name: str, **label_filter: str) -> flo
 RuntimeFactory = Callable[..., MappingRuntime]
 
 
-def make_settings(data_dir: Path, token: str | None = None, **ingest: int) -> ServiceSettings:
+def make_settings(
+    data_dir: Path, token: str | None = None, read_token: str | None = None, **ingest: int
+) -> ServiceSettings:
     return ServiceSettings(
         http=HttpSettings(max_body_bytes=64 * 1024),
         storage=StorageSettings(data_dir=data_dir, fsync_interval_s=0.2),
         ingest=IngestSettings(**ingest),
-        security=SecuritySettings(token=token),  # type: ignore[arg-type]
+        security=SecuritySettings(token=token, read_token=read_token),  # type: ignore[arg-type]
     )
 
 
@@ -330,9 +384,12 @@ def runtime_factory_fixture(tmp_path: Path) -> Iterator[RuntimeFactory]:
     started: list[MappingRuntime] = []
 
     def make(
-        data_dir: Path | None = None, token: str | None = None, **ingest: int
+        data_dir: Path | None = None,
+        token: str | None = None,
+        read_token: str | None = None,
+        **ingest: int,
     ) -> MappingRuntime:
-        settings = make_settings(data_dir or tmp_path / "data", token, **ingest)
+        settings = make_settings(data_dir or tmp_path / "data", token, read_token, **ingest)
         runtime = MappingRuntime(settings, zenoh_config=build_zenoh_config())
         runtime.start()
         started.append(runtime)

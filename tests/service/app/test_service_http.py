@@ -63,7 +63,8 @@ def test_session_lifecycle(client: TestClient) -> None:
 
 def test_poses_trajectory_and_maps(client: TestClient, runtime: MappingRuntime) -> None:
     sid = client.post("/sessions", json={"robot_id": "amr-2"}).json()["id"]
-    assert client.get(f"/sessions/{sid}/pose").status_code == 404
+    no_pose = client.get(f"/sessions/{sid}/pose")
+    assert (no_pose.status_code, no_pose.json()["code"]) == (409, "no_pose_yet")
 
     robot = SimRobot("amr-2")
     feed(runtime, robot, 40)
@@ -118,7 +119,7 @@ def test_poses_trajectory_and_maps(client: TestClient, runtime: MappingRuntime) 
 
     reset = client.post(f"/sessions/{sid}/reset").json()
     assert (reset["scans_accepted"], reset["poses"], reset["last_pose"]) == (0, 0, None)
-    assert client.get(f"/sessions/{sid}/pose").status_code == 404
+    assert client.get(f"/sessions/{sid}/pose").status_code == 409  # no_pose_yet
 
 
 def test_unmapped_robot_and_metrics(client: TestClient, runtime: MappingRuntime) -> None:
@@ -210,7 +211,8 @@ def test_bounded_bodies_and_safe_paths(client: TestClient) -> None:
     assert streamed.status_code == 413
     assert "larger than" in streamed.json()["detail"]
     not_json = client.post("/sessions", content=b"{", headers={"content-type": "application/json"})
-    assert not_json.status_code == 422
+    assert not_json.status_code == 400  # documented: a malformed body is 400, invalid_json
+    assert not_json.json()["code"] == "invalid_json"
     for path in (
         "/sessions/..%2F..%2Fetc/map.png",
         "/sessions/%2e%2e/map.pgm",
@@ -324,7 +326,10 @@ def test_settings_refuse_open_bind_without_token(tmp_path: Path) -> None:
     args = parser.parse_args(["serve", "--http-host", "0.0.0.0", "--data-dir", str(tmp_path)])
     with pytest.raises(SettingsError, match="token"):
         build_settings(args, env={})
-    assert build_settings(args, env={"MAPPING_TOKEN": "t"}).token == "t"
+    # A token alone no longer opens a non-loopback bind: reads need a scope too
+    # (tests/service/app/test_service_security.py).
+    env = {"MAPPING_TOKEN": "t", "MAPPING_READ_TOKEN": "r"}
+    assert build_settings(args, env=env).token == "t"
     insecure = parser.parse_args(
         ["serve", "--http-host", "0.0.0.0", "--allow-insecure-bind", "--data-dir", str(tmp_path)]
     )
@@ -335,11 +340,11 @@ def test_settings_refuse_open_bind_without_token(tmp_path: Path) -> None:
     assert (
         "t"
         not in json.dumps(
-            build_settings(args, env={"MAPPING_TOKEN": "zzz-secret"}).describe()
+            build_settings(args, env={**env, "MAPPING_TOKEN": "zzz-secret"}).describe()
         ).replace("<set>", "")[:0]
     )
     assert "zzz-secret" not in json.dumps(
-        build_settings(args, env={"MAPPING_TOKEN": "zzz-secret"}).describe()
+        build_settings(args, env={**env, "MAPPING_TOKEN": "zzz-secret"}).describe()
     )
 
 
