@@ -244,6 +244,7 @@ def test_openapi_documents_every_route(client: TestClient) -> None:
         "theta",
         "quality",
         "flags",
+        "covariance",
     }
     expected = {
         ("post", "/sessions"),
