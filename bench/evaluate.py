@@ -339,7 +339,7 @@ def evaluate_real(
     if run.loops is not None:
         result.extra["loop_closures"] = report["loop_closures"]
         result.extra["backend_s"] = report["backend_s"]
-    if use_odometry and odometry and all(o is not None for o in odometry):
+    if use_odometry and loop_closure and odometry and all(o is not None for o in odometry):
         poses = [o for o in odometry if o is not None]
         result.extra["odometry_alone"] = _odometry_alone(
             dataset.name, run.stamps_ns, poses, relations, missing
