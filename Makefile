@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test lint bench bench-quick clean
+.PHONY: demo test lint bench bench-quick mutation clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -23,6 +23,11 @@ lint: $(STAMP)
 
 test: lint
 	bash scripts/run-pytest.sh $(BIN)/python
+
+# Hand-written mutants of the wire decoder, the recording writer and the estimator, each run
+# against its part's fast tests in a scratch copy (a few minutes; not part of `make test`).
+mutation: $(STAMP)
+	$(BIN)/python scripts/mutation.py --write docs/benchmarks.md
 
 bench-quick: $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[dev,bench]'

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import httpx
 import pytest
-from conftest import free_port
-from mapping_live import LiveService, ScanFeeder, shared_service, wait_for
+from conftest import free_port, wait_for
+from svc_testkit import ScanFeeder, ServiceProc, shared_service
 
 from clients import MappingClient, MappingError, PoseView, Session
 from clients.http import MapInfo, MappingConnectionError, MappingProtocolError, _iter_sse
@@ -249,13 +249,13 @@ def test_map_yaml_parser_rejects_garbage() -> None:
 
 
 @pytest.fixture
-def live(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> LiveService:
+def live(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> ServiceProc:
     return shared_service(request.config, tmp_path_factory)
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(90)
-def test_live_session_lifecycle(live: LiveService, tmp_path: Path) -> None:
+def test_live_session_lifecycle(live: ServiceProc, tmp_path: Path) -> None:
     with MappingClient(live.url, token=live.token) as client:
         assert client.health().ok
         assert "# " in client.metrics() or client.metrics().strip()
@@ -305,7 +305,7 @@ def test_live_session_lifecycle(live: LiveService, tmp_path: Path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.timeout(60)
-def test_live_error_paths(live: LiveService) -> None:
+def test_live_error_paths(live: ServiceProc) -> None:
     with MappingClient(live.url) as anonymous:
         with pytest.raises(MappingError) as unauthorised:
             anonymous.create_session("live-2")

@@ -314,6 +314,7 @@ def _odom_msg_ros2(ts: Any, ns: int) -> Any:
 # --- the shared real recordings --------------------------------------------------------------
 
 
+@pytest.mark.datasets
 def test_aces_first_scans_with_odometry() -> None:
     path = dataset_path("aces", "aces.sort.bag")
     scans = list(itertools.islice(iter_log_scans(path), 100))
@@ -326,6 +327,7 @@ def test_aces_first_scans_with_odometry() -> None:
     assert count_log_scans(path) == 7374
 
 
+@pytest.mark.datasets
 def test_urg_demo_bag_with_malformed_index_is_read_tolerantly() -> None:
     path = dataset_path("urg-04lx-demo", "laser_scan_matcher_demo.bag")
     info = probe_log(path)

@@ -10,8 +10,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from conftest import free_port
-from mapping_live import BIN, SHARED_TOKEN, LiveService, ScanFeeder, shared_service, wait_for
+from conftest import free_port, wait_for
+from svc_testkit import BIN, SHARED_TOKEN, ScanFeeder, ServiceProc, shared_service
 
 from clients import MappingClient
 from clients.cli import main
@@ -92,13 +92,13 @@ def test_cannot_connect_exits_3_with_one_line() -> None:
 
 
 @pytest.fixture
-def live(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> LiveService:
+def live(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> ServiceProc:
     return shared_service(request.config, tmp_path_factory)
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(120)
-def test_mapctl_end_to_end(live: LiveService, tmp_path: Path) -> None:
+def test_mapctl_end_to_end(live: ServiceProc, tmp_path: Path) -> None:
     url = live.url
     auth = {"MAPPING_TOKEN": SHARED_TOKEN}
 

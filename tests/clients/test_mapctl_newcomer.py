@@ -8,7 +8,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from mapping_live import BIN, LiveService, ScanFeeder, wait_for
+from conftest import wait_for
+from svc_testkit import BIN, ScanFeeder, ServiceProc
 
 from clients import MappingClient
 
@@ -29,7 +30,7 @@ def _mapctl(url: str, *args: str) -> subprocess.CompletedProcess[str]:
 def test_maps_get_downloads_a_version_and_follow_fails_when_the_service_stops(
     tmp_path: Path,
 ) -> None:
-    live = LiveService(tmp_path / "data")
+    live = ServiceProc(tmp_path / "data")
     live.start()
     try:
         with MappingClient(live.url) as client:

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from conftest import free_port
-from mapping_live import LiveService, ScanFeeder, require_service, wait_for
+from conftest import free_port, wait_for
+from svc_testkit import ScanFeeder, ServiceProc
 
 from clients import MappingClient, MappingError, Pose, PoseFlag, PoseSubscriber
 from clients.http import Session
@@ -246,8 +246,7 @@ def ensure_active_session(client: MappingClient, robot_id: str) -> Session:
 @pytest.mark.slow
 @pytest.mark.timeout(120)
 def test_receives_from_live_service_across_restart(tmp_path: Path) -> None:
-    require_service()
-    service = LiveService(tmp_path / "data")
+    service = ServiceProc(tmp_path / "data")
     service.start()
     try:
         with MappingClient(service.url) as client:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import struct
 import zlib
 from pathlib import Path
@@ -237,6 +238,42 @@ def test_fsync_every(tmp_path: Path) -> None:
             writer.append(encode(m))
         writer.sync()
     assert list(read_messages(path)) == messages(5)
+
+
+def test_every_append_reaches_the_kernel_before_it_returns(tmp_path: Path) -> None:
+    """What the service's durability rests on: a record is readable by another reader (and so
+    survives kill -9 of the writer) as soon as `append` returns, without close or sync."""
+    path = tmp_path / "live.mrec"
+    items = messages(4)
+    with RecordingWriter(path) as writer:
+        for n, m in enumerate(items, 1):
+            writer.append(encode(m))
+            assert list(read_messages(path)) == items[:n]
+
+
+def test_fsync_every_n_appends_and_on_sync(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    synced: list[int] = []
+    real_fsync = os.fsync
+
+    def counting_fsync(fd: int) -> None:
+        synced.append(fd)
+        real_fsync(fd)
+
+    monkeypatch.setattr("clients.recording.os.fsync", counting_fsync)
+    with RecordingWriter(tmp_path / "a.mrec", fsync_every=2) as writer:
+        for m in messages(5):
+            writer.append(encode(m))
+        assert len(synced) == 2  # after appends 2 and 4
+        writer.sync()
+        assert len(synced) == 3
+        writer.append(encode(make_pose(9)))
+        writer.append(encode(make_pose(10)))
+        assert len(synced) == 4  # counting restarts at the sync
+    synced.clear()
+    with RecordingWriter(tmp_path / "b.mrec") as writer:  # fsync_every=0: the page cache only
+        for m in messages(5):
+            writer.append(encode(m))
+        assert synced == []
 
 
 def test_missing_file_is_not_a_recording(tmp_path: Path) -> None:

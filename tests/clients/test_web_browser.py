@@ -1,33 +1,34 @@
 """The live map page in a real headless Chromium (Playwright driving Debian's /usr/bin/chromium).
 
-The emulated robot (`sensor-agent --emulate`) drives while the page shows the map and the
-moving pose; then the page's Save and Stop controls are used. A screenshot is saved to
-test-artifacts/web.png.
+The emulated robot (`sensor-agent --emulate`, the real agent path) drives the synthetic building
+while the page shows the map and the moving pose. Then the robot stops, and the canvas is read
+back and checked against the building itself: where the simulated laser hit walls the canvas is
+dark, and beside the robot's true path it is white (free). Then the page's Save and Stop
+controls are used. A screenshot is saved to test-artifacts/web.png.
 """
 
 from __future__ import annotations
 
+import base64
+import io
 import logging
+import math
 import signal
 import subprocess
-import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
+import httpx
+import numpy as np
 import pytest
-from conftest import REPO_ROOT
-from mapping_live import (
-    BIN,
-    SHARED_TOKEN,
-    LiveService,
-    ScanFeeder,
-    shared_service,
-    wait_for,
-)
+from conftest import REPO_ROOT, wait_for
+from PIL import Image
+from svc_testkit import BIN, SHARED_TOKEN, ScanFeeder, ServiceProc, align_to_truth, shared_service
 
 from clients import MappingClient
+from sensor_agent.sim import LaserModel, RobotMotion, generate_building
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +44,15 @@ CHROMIUM_ARGS = [
 ]
 ARTIFACTS = REPO_ROOT / "test-artifacts"
 ROBOT = "web-1"
+WORLD_SEED = 1
+POSES_BEFORE_STOP = 240  # 6 s at 40 Hz, ~4 m of corridor
+
+# What the canvas must show: at least this share of the simulated laser's wall hits within 6 m
+# lies next to a dark pixel (measured 0.999 in two runs), and of the points beside the true path
+# on white (free) pixels (measured 1.0). The map not drawn gives 0 for both.
+MIN_WALL_SHARE = 0.90
+MAX_SHIFT_M = 0.3
+MIN_FREE_SHARE = 0.95
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -50,16 +60,21 @@ pytestmark = [pytest.mark.browser, pytest.mark.slow]
 def require_browser() -> Any:
     if not CHROMIUM.exists():
         pytest.skip("/usr/bin/chromium is missing (apt-get install chromium); .ci/run installs it")
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        pytest.skip("the playwright Python package is not installed (pip install -e '.[dev]')")
+    # A development dependency (`.[dev]`): if it does not import, the install is broken, and
+    # that is a failure, not a reason to skip.
+    from playwright.sync_api import sync_playwright
+
     return sync_playwright
 
 
 @contextmanager
-def driving_robot(service: LiveService, client: MappingClient, session_id: str) -> Iterator[str]:
-    """The emulated robot, driving; falls back to synthetic scans if the agent cannot run."""
+def driving_robot(
+    service: ServiceProc, client: MappingClient, session_id: str
+) -> Iterator[subprocess.Popen[bytes]]:
+    """The emulated robot, driving until the block ends or the agent is stopped.
+
+    A failure of the agent path fails the test: there is no fallback to synthetic scans.
+    """
     log_path = service.data_dir.parent / "agent.log"
     with log_path.open("wb") as agent_log:
         agent = subprocess.Popen(
@@ -68,6 +83,8 @@ def driving_robot(service: LiveService, client: MappingClient, session_id: str) 
                 "--robot-id",
                 ROBOT,
                 "--emulate",
+                "--world-seed",
+                str(WORLD_SEED),
                 "--zenoh-connect",
                 service.zenoh_endpoint,
             ],
@@ -75,29 +92,205 @@ def driving_robot(service: LiveService, client: MappingClient, session_id: str) 
             stderr=subprocess.STDOUT,
             cwd=REPO_ROOT,
         )
+
+    def mapping() -> bool:
+        if agent.poll() is not None:
+            pytest.fail(
+                f"sensor-agent --emulate exited with {agent.returncode}:\n"
+                + log_path.read_text(errors="replace")[-2000:]
+            )
+        return client.get_session(session_id).poses >= 3
+
     try:
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and agent.poll() is None:
-            if client.get_session(session_id).poses >= 3:
-                yield "sensor-agent --emulate"
-                return
-            time.sleep(0.1)
-        reason = f"exited with {agent.returncode}" if agent.poll() is not None else "sent no scans"
-        tail = log_path.read_text(errors="replace")[-600:]
-        log.warning("sensor-agent --emulate %s; using synthetic scans instead:\n%s", reason, tail)
+        wait_for(mapping, 30, "poses from sensor-agent --emulate", period_s=0.1)
+        yield agent
     finally:
-        if agent.poll() is None:
-            agent.send_signal(signal.SIGINT)
-            try:
-                agent.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                agent.kill()
-                agent.wait()
-    with ScanFeeder(service.zenoh_endpoint, ROBOT):
-        yield "synthetic scans"
+        stop_agent(agent)
 
 
-@pytest.mark.timeout(150)
+def stop_agent(agent: subprocess.Popen[bytes]) -> None:
+    if agent.poll() is None:
+        agent.send_signal(signal.SIGINT)
+        try:
+            agent.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            agent.kill()
+            agent.wait()
+
+
+def wait_until_still(client: MappingClient, session_id: str) -> int:
+    """Wait until the session's counters stop moving (the robot stopped); return the poses."""
+    last: list[int] = []
+
+    def still() -> bool:
+        info = client.get_session(session_id)
+        now = info.poses
+        steady = bool(last) and last[-1] == now and info.scans_accepted == now
+        last.append(now)
+        return steady
+
+    wait_for(still, 30, "the session to stop growing", period_s=0.5)
+    return last[-1]
+
+
+def read_pgm_size(pgm: bytes) -> tuple[int, int]:
+    tokens: list[bytes] = []
+    for line in pgm.split(b"\n"):
+        if line.startswith(b"#"):
+            continue
+        tokens += line.split()
+        if len(tokens) >= 3:
+            break
+    assert tokens[0] == b"P5", tokens
+    return int(tokens[1]), int(tokens[2])
+
+
+def parse_map_yaml(text: str) -> tuple[float, float, float]:
+    """(resolution_m, origin_x_m, origin_y_m) of a ROS map_server YAML."""
+    fields = dict(line.split(":", 1) for line in text.splitlines() if ":" in line)
+    origin = [float(v) for v in fields["origin"].strip().strip("[]").split(",")]
+    return float(fields["resolution"]), origin[0], origin[1]
+
+
+class CanvasView:
+    """World (map frame) to canvas pixels, as the page's `fitView` places the map: the map's
+    extent and the trajectory, fitted with a 24 px margin, centred."""
+
+    def __init__(
+        self,
+        css_w: float,
+        css_h: float,
+        dpr: float,
+        bounds: tuple[float, float, float, float],
+    ) -> None:
+        min_x, min_y, max_x, max_y = bounds
+        self.css_w, self.css_h, self.dpr = css_w, css_h, dpr
+        self.scale = min((css_w - 48) / max(max_x - min_x, 4), (css_h - 48) / max(max_y - min_y, 4))
+        self.cx, self.cy = (min_x + max_x) / 2, (min_y + max_y) / 2
+
+    def css(self, xy_m: np.ndarray) -> np.ndarray:
+        """(N, 2) map-frame metres to (N, 2) CSS pixels (x right, y down)."""
+        x = self.css_w / 2 + (xy_m[:, 0] - self.cx) * self.scale
+        y = self.css_h / 2 - (xy_m[:, 1] - self.cy) * self.scale
+        return np.column_stack((x, y))
+
+
+def compose(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """`a ∘ b` for a (3,) pose and (N, 3) poses."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    x = a[0] + c * b[:, 0] - s * b[:, 1]
+    y = a[1] + s * b[:, 0] + c * b[:, 1]
+    return np.column_stack((x, y, a[2] + b[:, 2]))
+
+
+def world_to_map(
+    first_est: np.ndarray, first_truth: np.ndarray, xy_world: np.ndarray
+) -> np.ndarray:
+    """The map frame is the first estimated pose at the first true pose."""
+    c, s = math.cos(first_truth[2]), math.sin(first_truth[2])
+    d = xy_world - first_truth[:2]
+    rel = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1], 0 * d[:, 0]))
+    return compose(first_est, rel)[:, :2]
+
+
+def ground_truth_points(
+    poses: list[dict[str, Any]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """In the map frame: (walls hit by the simulated laser, free points beside the true path,
+    the true path), from the building the emulator drives and the served trajectory."""
+    world = generate_building(WORLD_SEED)
+    motion = RobotMotion(world, WORLD_SEED)
+    stamps = np.array([p["stamp_ns"] for p in poses], dtype=np.int64)
+    est = np.array([(p["x"], p["y"], p["theta"]) for p in poses])
+    offset_s, _ = align_to_truth(stamps, est, motion.poses_at)
+    truth = motion.poses_at(offset_s + (stamps - stamps[0]) / 1e9)
+    model = LaserModel.utm30lx()
+    angles = model.angles_rad()[::4]
+    hits = []
+    for pose in truth[::20]:
+        r = world.raycast(pose, angles, 6.0)  # near hits: many cells per metre of wall
+        ok = np.isfinite(r)
+        a = angles[ok] + pose[2]
+        hits.append(np.column_stack((pose[0] + r[ok] * np.cos(a), pose[1] + r[ok] * np.sin(a))))
+    walls_world = np.concatenate(hits)
+    # 0.4 and 0.8 m to either side of the true path, where the building is free 0.2 m around.
+    side = np.column_stack((-np.sin(truth[:, 2]), np.cos(truth[:, 2])))
+    beside = np.concatenate([truth[:, :2] + d * side for d in (-0.8, -0.4, 0.4, 0.8)])
+    beside = beside[world.clearance_ok(beside, 0.2)]
+    to_map = lambda xy: world_to_map(est[0], truth[0], xy)  # noqa: E731
+    return to_map(walls_world), to_map(beside), to_map(truth[:, :2])
+
+
+def canvas_rgba(page: Any) -> np.ndarray:
+    url = page.evaluate("() => document.getElementById('map-canvas').toDataURL('image/png')")
+    png = base64.b64decode(url.split(",", 1)[1])
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGBA")).astype(np.int32)
+
+
+def map_shares(
+    rgba: np.ndarray, view: CanvasView, walls: np.ndarray, beside: np.ndarray, avoid: np.ndarray
+) -> dict[str, float]:
+    """Share of wall points next to a dark pixel, and of free points on white pixels.
+
+    `avoid` (CSS px) are the overlays drawn over the map (robot, start marker): points near
+    them are not judged, and neither is the scale bar's corner.
+    """
+    h, w = rgba.shape[:2]
+    lum = (rgba[..., 0] * 299 + rgba[..., 1] * 587 + rgba[..., 2] * 114) // 1000
+    dark = (rgba[..., 3] >= 128) & (lum < 140)  # occupied cells: the page's ink colour
+    white = (rgba[..., 3] == 255) & (rgba[..., :3].min(axis=-1) >= 235)  # free cells
+
+    def usable(px: np.ndarray) -> np.ndarray:
+        inside = (px[:, 0] >= 4) & (px[:, 0] < view.css_w - 4)
+        inside &= (px[:, 1] >= 4) & (px[:, 1] < view.css_h - 4)
+        scale_bar = (px[:, 0] < 240) & (px[:, 1] > view.css_h - 50)
+        near = np.zeros(len(px), dtype=bool)
+        for a in avoid:
+            near |= np.hypot(*(px - a).T) < 40
+        return inside & ~scale_bar & ~near
+
+    def any_near(mask: np.ndarray, px: np.ndarray, radius: int) -> np.ndarray:
+        ij = np.rint(px * view.dpr).astype(int)
+        found = np.zeros(len(ij), dtype=bool)
+        for dy in range(-radius, radius + 1):
+            for dx in range(-radius, radius + 1):
+                y = np.clip(ij[:, 1] + dy, 0, h - 1)
+                x = np.clip(ij[:, 0] + dx, 0, w - 1)
+                found |= mask[y, x]
+        return found
+
+    wall_px = view.css(walls)
+    wall_px = wall_px[usable(wall_px)]
+    free_px = view.css(beside)
+    free_px = free_px[usable(free_px)]
+    # Wall cells are 5 cm: a wall hit counts when a dark pixel lies within 8 cm (or 2 px), for
+    # the estimator's error. The building is placed on the map frame by the time alignment
+    # with the emulator, which host-stamp jitter on a loaded machine shifts by a few tenths of
+    # a second (0.7 m/s): so the best shift within ±MAX_SHIFT_M is searched first, and reported.
+    radius = max(2, math.ceil(0.08 * view.scale * view.dpr))
+    reach = math.ceil(MAX_SHIFT_M * view.scale)
+    best = (-1, 0, 0, 0)  # (wall hits, -squared shift: the smallest shift wins ties, sx, sy)
+    for sy in range(-reach, reach + 1):
+        for sx in range(-reach, reach + 1):
+            if sx * sx + sy * sy > reach * reach:
+                continue
+            shifted = wall_px + np.array((sx, sy), dtype=float)
+            hits = int(np.count_nonzero(any_near(dark, shifted, radius)))
+            best = max(best, (hits, -(sx * sx + sy * sy), sx, sy))
+    shift = np.array(best[2:], dtype=float)
+    return {
+        "scale_px_per_m": view.scale,
+        "shift_m": float(np.hypot(*shift) / view.scale),
+        "wall_points": float(len(wall_px)),
+        "wall_share": best[0] / max(len(wall_px), 1),
+        "wall_share_unshifted": float(np.mean(any_near(dark, wall_px, radius))),
+        "free_points": float(len(free_px)),
+        "free_share": float(np.mean(any_near(white, free_px + shift, 0))),
+        "dark_at_free": float(np.mean(any_near(dark, free_px + shift, 0))),
+    }
+
+
+@pytest.mark.timeout(180)
 def test_live_map_page(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
@@ -107,7 +300,7 @@ def test_live_map_page(
     with ExitStack() as stack:
         client = stack.enter_context(MappingClient(service.url, token=SHARED_TOKEN))
         session = client.create_session(ROBOT)
-        source = stack.enter_context(driving_robot(service, client, session.id))
+        agent = stack.enter_context(driving_robot(service, client, session.id))
 
         pw = stack.enter_context(sync_playwright())
         browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
@@ -120,12 +313,17 @@ def test_live_map_page(
             "request",
             lambda req: None if req.url.startswith(service.url) else external.append(req.url),
         )
+        # Map fetches in order: ("start" | "done", url). Playwright delivers these events only
+        # while the test calls into it, hence the `page.evaluate` in the conditions below.
+        map_fetches: list[tuple[str, str]] = []
+        page.on("request", lambda req: map_fetches.append(("start", req.url)))
+        page.on("requestfinished", lambda req: map_fetches.append(("done", req.url)))
 
         page.goto(f"{service.url}/?session={session.id}")
         page.wait_for_selector("#map-canvas")
         assert page.title().startswith("Live map")
 
-        # The map image arrives and is drawn; the pose moves with the robot.
+        # The map image arrives; the pose moves with the robot.
         page.wait_for_function("document.body.dataset.mapLoaded !== undefined", timeout=30_000)
         page.wait_for_function(
             "document.getElementById('conn-text').textContent === 'live'", timeout=30_000
@@ -152,23 +350,83 @@ def test_live_map_page(
             30,
             "the displayed pose to change",
         )
-        painted = page.evaluate(
-            """() => {
-                const c = document.getElementById('map-canvas');
-                const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
-                const colours = new Set();
-                let drawn = 0;
-                for (let i = 0; i < d.length; i += 4 * 7) {
-                    if (d[i + 3] > 0) drawn++;
-                    colours.add((d[i] >> 4) << 8 | (d[i + 1] >> 4) << 4 | (d[i + 2] >> 4));
-                }
-                return {drawn, colours: colours.size};
-            }"""
-        )
-        assert painted["drawn"] > 1000, painted  # the map image covers part of the canvas
-        assert painted["colours"] >= 4, painted  # walls, free, trajectory, robot
         assert page.inner_text("#s-robot") == ROBOT
         assert page.locator("#map-empty").is_hidden()
+
+        # The robot stops; the page fetches the final map and draws it.
+        wait_for(
+            lambda: client.get_session(session.id).poses >= POSES_BEFORE_STOP,
+            60,
+            f"{POSES_BEFORE_STOP} poses",
+            period_s=0.2,
+        )
+        stop_agent(agent)
+        poses_total = wait_until_still(client, session.id)
+        fetched = len(map_fetches)
+
+        def map_refetched() -> bool:
+            # A refresh is map.yaml, map.pgm, map.yaml; the image is drawn after the second.
+            page.evaluate("0")
+            events = map_fetches[fetched:]
+            starts = [i for i, (k, u) in enumerate(events) if k == "start" and "/map.pgm" in u]
+            return bool(starts) and any(
+                k == "done" and "/map.yaml" in u for k, u in events[starts[0] + 1 :]
+            )
+
+        wait_for(map_refetched, 30, "the page to fetch the final map")
+        api = httpx.Client(base_url=service.url, timeout=10.0)
+        stack.callback(api.close)
+        pgm = api.get(f"/sessions/{session.id}/map.pgm").content
+        resolution_m, origin_x, origin_y = parse_map_yaml(
+            api.get(f"/sessions/{session.id}/map.yaml").text
+        )
+        width_px, height_px = read_pgm_size(pgm)
+        page.wait_for_function(
+            f"document.body.dataset.mapLoaded === '{width_px}x{height_px}'", timeout=30_000
+        )
+        wait_for(
+            lambda: int(page.inner_text("#pose-seq")) == poses_total - 1,
+            30,
+            "the page to show the last pose",
+        )
+        page.evaluate(  # two frames: the page draws on requestAnimationFrame
+            "() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))"
+        )
+
+        poses = client_trajectory(api, session.id)
+        assert len(poses) == poses_total
+        est = np.array([(p["x"], p["y"]) for p in poses])
+        size = page.evaluate(
+            "() => { const c = document.getElementById('map-canvas');"
+            " return [c.width, c.height, window.devicePixelRatio]; }"
+        )
+        dpr = float(size[2])
+        map_max = (origin_x + width_px * resolution_m, origin_y + height_px * resolution_m)
+        bounds = (
+            min(origin_x, float(est[:, 0].min())),
+            min(origin_y, float(est[:, 1].min())),
+            max(map_max[0], float(est[:, 0].max())),
+            max(map_max[1], float(est[:, 1].max())),
+        )
+        view = CanvasView(size[0] / dpr, size[1] / dpr, dpr, bounds)
+        rgba = canvas_rgba(page)
+        Image.fromarray(rgba.astype(np.uint8), "RGBA").save(ARTIFACTS / "web-canvas.png")
+
+        # The overlay sits where the page's own transform puts it: the start marker.
+        start_px = np.rint(view.css(est[:1])[0] * dpr).astype(int)
+        colour = rgba[start_px[1], start_px[0], :3]
+        assert np.abs(colour - (222, 74, 44)).max() < 40, colour  # TRAJECTORY_RGB in app.js
+
+        walls, beside, _truth = ground_truth_points(poses)
+        avoid = view.css(est[[0, -1]])
+        shares = map_shares(rgba, view, walls, beside, avoid)
+        log.info("canvas against the building: %s", shares)
+        print("canvas against the building:", shares)
+        assert shares["wall_points"] >= 200, shares
+        assert shares["free_points"] >= 200, shares
+        assert shares["wall_share"] >= MIN_WALL_SHARE, shares
+        assert shares["free_share"] >= MIN_FREE_SHARE, shares
+        assert shares["dark_at_free"] <= 0.02, shares
 
         # Controls: without a token the service refuses and the page says so.
         page.click("#btn-save")
@@ -192,8 +450,15 @@ def test_live_map_page(
 
         assert not js_errors, js_errors
         assert not external, f"the page fetched external URLs: {external}"
-        log.info("browser test drove the page with %s", source)
     assert (ARTIFACTS / "web.png").stat().st_size > 10_000
+
+
+def client_trajectory(api: httpx.Client, session_id: str) -> list[dict[str, Any]]:
+    r = api.get(f"/sessions/{session_id}/trajectory")
+    assert r.status_code == 200, r.text
+    poses = r.json()["poses"]
+    assert isinstance(poses, list)
+    return poses
 
 
 @pytest.mark.timeout(120)
@@ -202,7 +467,7 @@ def test_live_map_page_with_a_read_token(tmp_path: Path) -> None:
     drops it from the address), draws the map and follows the pose stream over fetch()."""
     sync_playwright = require_browser()
     control, read = "control-token-0123456789", "read-token-0123456789abc"
-    service = LiveService(tmp_path / "data", token=control, read_token=read)
+    service = ServiceProc(tmp_path / "data", token=control, read_token=read)
     service.start()
     with ExitStack() as stack:
         stack.callback(service.stop)

@@ -12,8 +12,9 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
-from mapping_live import SHARED_TOKEN, ScanFeeder, shared_service, wait_for
+from conftest import wait_for
 from PIL import Image
+from svc_testkit import SHARED_TOKEN, ScanFeeder, shared_service
 from test_web_browser import CHROMIUM, CHROMIUM_ARGS, require_browser
 
 from clients import MappingClient

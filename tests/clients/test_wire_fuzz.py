@@ -21,6 +21,7 @@ from hypothesis import HealthCheck, given, note, settings
 from hypothesis import strategies as st
 
 from clients.wire import (
+    MAX_BEAMS,
     DecodeError,
     OdometryPose,
     Pose,
@@ -309,3 +310,129 @@ def _check_volume(seen: Counter[str]) -> None:
     assert seen["reason:malformed_msgpack"] > 0, seen
     # "invalid" is the decoders' safety net for exceptions that escaped the explicit checks.
     assert seen["reason:invalid"] == 0, seen
+
+
+# ---------------------------------------------------------------------------------------------
+# The geometry property: a payload is accepted exactly when its declared geometry agrees with
+# its arrays, and what is accepted has the declared shape. "Raises only DecodeError" and "round
+# trips" both hold for a decoder that believes the arrays and ignores `beam_count`; this does not.
+
+GEOMETRY_SETTINGS = settings(max_examples=2000, deadline=None, derandomize=True, database=None)
+_WIDTH = {"u16_mm": 2, "f32_m": 4}
+
+
+def _geometry_valid(g: dict[str, Any]) -> bool:
+    """The contract of docs/wire-format.md, restated independently of `clients.wire`."""
+    bc = g["beam_count"]
+    return (
+        1 <= bc <= MAX_BEAMS
+        and g["angle_increment_rad"] > 0.0
+        and abs(g["angle_min_rad"]) <= 2 * math.pi
+        and g["angle_increment_rad"] * (bc - 1) <= 2 * math.pi + 1e-6
+        and 0.0 <= g["range_min_m"] < g["range_max_m"]
+        and g["ranges_len"] == _WIDTH[g["ranges_encoding"]] * bc
+        and (g["intensities_len"] is None or g["intensities_len"] == 4 * bc)
+    )
+
+
+@st.composite
+def geometries(draw: st.DrawFn) -> dict[str, Any]:
+    """Declared geometry and array sizes; each part agrees most of the time, so that whole
+    payloads that agree are common too, and disagreements sit near agreement (off by a beam,
+    a byte, the other encoding's width), where a lax decoder goes wrong."""
+    encoding = draw(st.sampled_from(["u16_mm", "f32_m"]))
+    if draw(st.integers(0, 7)):
+        beam_count = draw(st.integers(1, 1500))
+    else:
+        beam_count = draw(st.sampled_from([0, -1, MAX_BEAMS + 1]))
+    width = _WIDTH[encoding]
+    agree = max(beam_count, 0) * width
+    if draw(st.booleans()):
+        ranges_len = agree
+    else:
+        ranges_len = draw(
+            st.one_of(
+                st.integers(max(0, agree - 2 * width), agree + 2 * width),
+                st.integers(0, 6000),
+                st.just(max(beam_count, 0) * (6 - width)),  # the other encoding's width
+            )
+        )
+    intensities_len = draw(
+        st.sampled_from([None, None, 4 * max(beam_count, 0), 4 * max(beam_count, 0)])
+        | st.integers(max(0, 4 * beam_count - 8), 4 * max(beam_count, 0) + 8)
+    )
+    return {
+        "beam_count": beam_count,
+        "ranges_encoding": encoding,
+        "ranges_len": ranges_len,
+        "intensities_len": intensities_len,
+        "angle_min_rad": draw(st.sampled_from([-2.4, -0.5, 0.0, 2 * math.pi, -2 * math.pi - 1e-3])),
+        # 2π/1000: beams past 1,001 span more than a revolution.
+        "angle_increment_rad": draw(
+            st.sampled_from([0.001, 0.002, 2 * math.pi / 1000, 0.0043, 0.0, -1e-3])
+        ),
+        "range_min_m": draw(st.sampled_from([0.0, 0.1, 30.0])),
+        "range_max_m": draw(st.sampled_from([30.0, 0.1, 60.0])),
+    }
+
+
+def _geometry_payload(g: dict[str, Any]) -> bytes:
+    body = dict(SCAN_BODIES[0])
+    body.pop("intensities", None)
+    body.pop("odom", None)
+    for key in ("beam_count", "ranges_encoding", "angle_min_rad", "angle_increment_rad"):
+        body[key] = g[key]
+    body["range_min_m"], body["range_max_m"] = g["range_min_m"], g["range_max_m"]
+    # Ranges of whole millimetres (valid in both encodings), intensities 0..1.
+    rng = np.random.default_rng(g["ranges_len"])
+    if g["ranges_encoding"] == "u16_mm":
+        raw = rng.integers(0, 30_000, g["ranges_len"] // 2 + 1).astype("<u2").tobytes()
+    else:
+        raw = (rng.integers(0, 30_000, g["ranges_len"] // 4 + 1) / 1000).astype("<f4").tobytes()
+    body["ranges"] = raw[: g["ranges_len"]]
+    if g["intensities_len"] is not None:
+        inten = rng.random(g["intensities_len"] // 4 + 1).astype("<f4").tobytes()
+        body["intensities"] = inten[: g["intensities_len"]]
+    return _pack(body)
+
+
+def _check_geometry(g: dict[str, Any]) -> str:
+    """Decode the payload of `g`; assert the property; return the outcome."""
+    payload = _geometry_payload(g)
+    note(f"geometry = {g}")
+    if not _geometry_valid(g):
+        with pytest.raises(DecodeError) as err:
+            decode_scan(payload)
+        assert err.value.reason in {"beam_count_mismatch", "bad_geometry", "out_of_range"}
+        return err.value.reason
+    scan = decode_scan(payload)
+    assert scan.beam_count == g["beam_count"]
+    assert scan.ranges_m.shape == (g["beam_count"],)
+    assert scan.angles_rad().shape == (g["beam_count"],)
+    if g["intensities_len"] is None:
+        assert scan.intensities is None
+    else:
+        assert scan.intensities is not None
+        assert scan.intensities.shape == (g["beam_count"],)
+    assert (scan.angle_min_rad, scan.angle_increment_rad) == (
+        g["angle_min_rad"],
+        g["angle_increment_rad"],
+    )
+    assert (scan.range_min_m, scan.range_max_m) == (g["range_min_m"], g["range_max_m"])
+    assert decode_scan(encode_scan(scan)) == scan
+    return "accepted"
+
+
+@pytest.mark.timeout(120)
+def test_declared_geometry_must_agree_with_the_arrays() -> None:
+    seen: Counter[str] = Counter()
+
+    @GEOMETRY_SETTINGS
+    @given(geometries())
+    def check(g: dict[str, Any]) -> None:
+        seen[_check_geometry(g)] += 1
+
+    check()
+    # The strategy reaches accepted payloads and every kind of rejection.
+    for outcome in ("accepted", "beam_count_mismatch", "bad_geometry", "out_of_range"):
+        assert seen[outcome] >= 50, seen

@@ -766,6 +766,26 @@ def test_wide_array_in_unknown_field_hits_the_array_limit() -> None:
     assert info.value.reason == "malformed_msgpack"
 
 
+@pytest.mark.parametrize(
+    ("limit", "fits", "too_big"),
+    [
+        # A map of 64 entries unpacks, 65 do not (the scan's own fields are 13 of them).
+        ("map", lambda b: {**b, **{f"x{i}": 0 for i in range(64 - len(b))}}, None),
+        ("array", lambda b: {**b, "x": [0] * 1024}, lambda b: {**b, "x": [0] * 1025}),
+        ("str", lambda b: {**b, "x": "a" * 4096}, lambda b: {**b, "x": "a" * 4097}),
+    ],
+)
+def test_unpacker_limits_are_exact(limit: str, fits: Any, too_big: Any) -> None:
+    """The limits that bound allocation before validation: at the limit accepted, one past it
+    rejected as malformed (a limit lifted would let a small payload allocate a lot)."""
+    body = scan_body(beams=3)
+    assert decode_scan(pack(fits(body))).beam_count == 3
+    big = too_big(body) if too_big else {**fits(body), "x_last": 0}
+    with pytest.raises(DecodeError) as info:
+        decode_scan(pack(big))
+    assert info.value.reason == "malformed_msgpack", limit
+
+
 # ---------------------------------------------------------------------------------------------
 # The encoder refuses what the decoder would reject
 

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 import pytest
 import zenoh
+from conftest import wait_for
 
 from clients.wire import Scan, decode_scan
 from clients.zenoh_config import build_zenoh_config
@@ -29,13 +29,6 @@ def make_scan(i: int) -> Scan:
         range_max_m=60.0,
         ranges_m=np.full(1081, 1.0 + i / 1000.0),
     )
-
-
-def wait_for(predicate: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
 
 
 @pytest.fixture
@@ -70,7 +63,11 @@ def test_scans_are_numbered_stamped_and_published(session: zenoh.Session) -> Non
         for i in range(50):
             assert pub.submit(make_scan(i))
         # A local subscriber sees a scan before put() returns and the counter moves.
-        wait_for(lambda: len(received) == 50 and pub.counters.published == 50)
+        wait_for(
+            lambda: len(received) == 50 and pub.counters.published == 50,
+            10,
+            "50 scans received and counted",
+        )
         assert pub.counters.dropped == 0
     sub.undeclare()
     assert [s.seq for s in received] == list(range(50))

@@ -8,13 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import dataset_path
 
 from clients.recording import RecordingWriter
 from clients.wire import Scan, encode_scan
 from sensor_agent.errors import SourceError
 from sensor_agent.scene import RectangleRoom
 from sensor_agent.sources import EmulatorSource, ReplaySource
-from tests.conftest import dataset_path
 
 T0_NS = 1_700_000_000_000_000_000
 

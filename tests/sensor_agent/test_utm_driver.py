@@ -8,12 +8,13 @@ import tempfile
 import threading
 import time
 import tty
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
 import serial
+from conftest import free_port, wait_for
 
 from sensor_agent.driver import DeviceScan, DriverConfig, Utm30lxDriver
 from sensor_agent.emulator import (
@@ -27,16 +28,8 @@ from sensor_agent.emulator import (
 from sensor_agent.errors import DriverError
 from sensor_agent.scene import RectangleRoom
 from sensor_agent.scip import commands as c
-from tests.conftest import free_port
 
 FAST = DriverConfig(command_timeout_s=0.3, scan_timeout_s=0.6, backoff_max_s=0.4)
-
-
-def wait_for(predicate: Callable[[], bool], timeout_s: float = 10.0, what: str = "") -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, f"timed out waiting for {what or predicate}"
-        time.sleep(0.01)
 
 
 class Consumer:
@@ -68,7 +61,7 @@ class Consumer:
     def wait_scans(self, n: int, timeout_s: float = 10.0) -> None:
         def enough() -> bool:
             if self.error is not None:
-                raise AssertionError(f"driver failed: {self.error!r}")
+                pytest.fail(f"driver failed: {self.error!r}")
             return len(self.scans) >= n
 
         wait_for(enough, timeout_s, f"{n} scans")

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import serial
+from conftest import wait_for
 
 from sensor_agent.emulator import (
     Emulator,
@@ -280,13 +281,6 @@ def test_scenes_are_deterministic() -> None:
 # -- links ----------------------------------------------------------------------------------------
 
 
-def wait_for(predicate: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not predicate():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.01)
-
-
 @pytest.fixture
 def emu_dir() -> Iterator[Path]:
     with tempfile.TemporaryDirectory(prefix="sa-emu-") as d:
@@ -330,7 +324,9 @@ def test_a_stalled_host_makes_the_emulator_drop_scans_not_block(emu_dir: Path) -
         port = serial.serial_for_url(str(emu_dir / "tty"), timeout=0.05)
         codec = ScipCodec()
         port.write(codec.send(c.md(0, 1080)))
-        wait_for(lambda: emu.stats.scans_dropped >= 10)  # nobody reads: the pty fills up
+        wait_for(
+            lambda: emu.stats.scans_dropped >= 10, 10, "10 dropped scans"
+        )  # nobody reads: the pty fills up
         # The device still answers and streams once the host reads again.
         port.reset_input_buffer()
         codec.receive(b"\n\n")
@@ -358,7 +354,7 @@ def test_unplug_removes_and_recreates_the_link(emu_dir: Path) -> None:
         link = emu_dir / "tty"
         port = serial.serial_for_url(str(link), timeout=0.05)
         emu.unplug(0.3)
-        wait_for(lambda: not link.exists())
+        wait_for(lambda: not link.exists(), 10, "the link to go")
         with pytest.raises(serial.SerialException):
             read_until_error(port)  # EIO: the device is gone
         port.close()
@@ -383,7 +379,7 @@ def test_stall_silences_the_device(emu_dir: Path) -> None:
         port.write(codec.send(c.md(0, 1080)))
         read_events(port, codec, lambda ev: any(isinstance(e, ScanData) for e in ev))
         emu.stall(0.5)
-        wait_for(lambda: emu.stats.stalls == 1)
+        wait_for(lambda: emu.stats.stalls == 1, 10, "one stall")
         t0 = time.monotonic()
         events = read_events(port, codec, lambda ev: any(isinstance(e, ScanData) for e in ev))
         port.close()
@@ -393,7 +389,7 @@ def test_stall_silences_the_device(emu_dir: Path) -> None:
 
 
 def test_tcp_link(emu_dir: Path) -> None:
-    from tests.conftest import free_port
+    from conftest import free_port
 
     port_no = free_port()
     device = Utm30lxDevice(RectangleRoom(seed=1), now_s=time.monotonic())
@@ -411,7 +407,7 @@ def test_recording_ignores_a_torn_tail(emu_dir: Path) -> None:
         port = serial.serial_for_url(str(emu_dir / "tty"), timeout=0.05)
         codec = ScipCodec()
         port.write(codec.send(c.md(0, 1080)))
-        wait_for(lambda: emu.stats.scans_sent >= 3)
+        wait_for(lambda: emu.stats.scans_sent >= 3, 10, "3 scans sent")
         port.close()
     path = emu_dir / "sent.rec"
     full = read_sent_scans(path)

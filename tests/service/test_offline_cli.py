@@ -174,6 +174,7 @@ def test_unreadable_inputs_fail_cleanly(tmp_path: Path) -> None:
     assert "no such file" in result.stderr
 
 
+@pytest.mark.datasets
 def test_wrong_topic_fails_cleanly(tmp_path: Path) -> None:
     bag = dataset_path("urg-04lx-demo", "laser_scan_matcher_demo.bag")
     result = _run_cli(bag, "--out", tmp_path / "o", "--scan-topic", "/laser")
@@ -182,6 +183,7 @@ def test_wrong_topic_fails_cleanly(tmp_path: Path) -> None:
     assert "no scans on /laser" in result.stderr.splitlines()[-1]
 
 
+@pytest.mark.datasets
 @pytest.mark.slow
 @pytest.mark.timeout(240)
 def test_map_damaged_urg_bag(tmp_path: Path) -> None:

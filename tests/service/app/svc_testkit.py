@@ -1,11 +1,18 @@
-"""Helpers for the mapping-service tests (not a test module).
+"""The service test kit: helpers for every test that needs a mapping service (not a test module).
+
+Tests in any folder import it as `svc_testkit` (tests/conftest.py puts this folder on the path).
 
 - `SimRobot`: wire `Scan`s of a robot driving the synthetic building (sensor_agent.sim), with
   the ground truth, on a simulated 40 Hz clock (not the wall clock);
 - `ServiceProc`: `mapping-service serve` as a real subprocess on free loopback ports;
+  `shared_service`: one of them (token `SHARED_TOKEN`) for all tests of a run that only need
+  a service to talk to;
+- `ScanFeeder`: a thread publishing scans of a rectangular room (`room_scan`) over Zenoh;
 - `agent`: a real `sensor-agent --emulate` process publishing to a service;
 - `zenoh_peer`: a test-side Zenoh session connected to a service;
-- `malformed_payloads`: a deterministic mix of bad scan payloads, with their expected reasons.
+- `malformed_payloads`: a deterministic mix of bad scan payloads, with their expected reasons;
+- `align_to_truth`, `check_against_truth`: served poses against the simulator's ground truth;
+- in-process fixtures (`runtime_factory`, `runtime`, `client`) and `feed`.
 """
 
 from __future__ import annotations
@@ -17,6 +24,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from functools import lru_cache
 from pathlib import Path
@@ -30,6 +38,7 @@ import zenoh
 from conftest import REPO_ROOT, free_port, wait_for
 from fastapi.testclient import TestClient
 
+from clients.keyexpr import DEFAULT_PREFIX, scan_key
 from clients.wire import Scan, encode_scan
 from clients.zenoh_config import build_zenoh_config
 from sensor_agent.sim import LaserModel, RobotMotion, World, generate_building, simulate_scan
@@ -47,6 +56,8 @@ SCAN_PERIOD_NS = 25_000_000
 _TOKEN_VARIABLES = frozenset(
     ("MAPPING_TOKEN", "MAPPING_TOKEN_FILE", "MAPPING_READ_TOKEN", "MAPPING_READ_TOKEN_FILE")
 )
+BIN = Path(sys.executable).parent  # the venv's console scripts (sensor-agent, mapctl, ...)
+SHARED_TOKEN = "test-token"
 
 
 @lru_cache(maxsize=4)
@@ -98,6 +109,61 @@ def relative(a: Any, b: Any) -> np.ndarray:
     return np.stack([c * dx + s * dy, -s * dx + c * dy, dth], axis=-1)
 
 
+def align_to_truth(
+    stamps_ns: np.ndarray, est: np.ndarray, truth_at: Any, search_s: float = 60.0
+) -> tuple[float, np.ndarray]:
+    """Find the scene-time offset of the first pose; return (offset_s, relative truth poses).
+
+    Agent stamps are host times, the emulator's scene time started a little earlier: we search
+    the constant offset that best explains the estimated motion (the error that remains is the
+    estimator's).
+    """
+    dt_s = (stamps_ns - stamps_ns[0]) / 1e9
+    est_rel = relative(est[0], est)
+
+    def truth_rel(offset_s: float) -> np.ndarray:
+        poses = truth_at(offset_s + dt_s)
+        return relative(poses[0], poses)
+
+    def cost(offset_s: float) -> float:
+        # Position and heading (1 rad ~ 1 m): on straight stretches only turns pin the offset.
+        t = truth_rel(offset_s)
+        dth = (t[:, 2] - est_rel[:, 2] + math.pi) % (2 * math.pi) - math.pi
+        return float(np.mean(np.hypot(*(t[:, :2] - est_rel[:, :2]).T) + np.abs(dth)))
+
+    coarse = np.arange(0.0, search_s, 0.1)
+    best = min(coarse, key=cost)
+    fine = np.arange(max(0.0, best - 0.1), best + 0.1, 0.005)
+    best = min(fine, key=cost)
+    return float(best), truth_rel(float(best))
+
+
+def check_against_truth(poses: list[dict[str, Any]], truth_at: Any) -> dict[str, float]:
+    """Served poses (the trajectory resource's dicts) against `truth_at(t_s) -> (N, 3)`, both as
+    motion relative to their first pose: distances travelled, end-point error, absolute
+    trajectory error (RMS and worst) and the final heading error."""
+    stamps = np.array([p["stamp_ns"] for p in poses], dtype=np.int64)
+    est = np.array([(p["x"], p["y"], p["theta"]) for p in poses])
+    _, truth_rel = align_to_truth(stamps, est, truth_at)
+    est_rel = relative(est[0], est)
+    # Path lengths on ~0.5 s steps, first to last pose (per-scan jitter would inflate them).
+    steps = max(2, int((stamps[-1] - stamps[0]) / 0.5e9) + 1)
+    pick = np.unique(np.linspace(0, len(est_rel) - 1, steps).round().astype(int))
+    distance_true = float(np.sum(np.hypot(*np.diff(truth_rel[pick, :2], axis=0).T)))
+    distance_est = float(np.sum(np.hypot(*np.diff(est_rel[pick, :2], axis=0).T)))
+    position_errors = np.hypot(*(truth_rel[:, :2] - est_rel[:, :2]).T)
+    end_error = float(position_errors[-1])
+    heading_error = abs((truth_rel[-1, 2] - est_rel[-1, 2] + math.pi) % (2 * math.pi) - math.pi)
+    return {
+        "distance_true_m": distance_true,
+        "distance_est_m": distance_est,
+        "end_error_m": end_error,
+        "ate_rms_m": float(np.sqrt(np.mean(position_errors**2))),
+        "ate_max_m": float(position_errors.max()),
+        "heading_error_deg": math.degrees(heading_error),
+    }
+
+
 def malformed_payloads(robot_id: str, count: int) -> Iterator[tuple[bytes, str]]:
     """`count` bad scan payloads cycling through kinds of damage, with the expected reason."""
     good = encode_scan(SimRobot(robot_id).next_scan())
@@ -129,14 +195,19 @@ def malformed_payloads(robot_id: str, count: int) -> Iterator[tuple[bytes, str]]
 
 
 class ServiceProc:
-    """`mapping-service serve` in a subprocess; restartable on the same ports and data dir."""
+    """`mapping-service serve` in a subprocess; restartable on the same ports and data dir.
+
+    `prefix` is passed as `--prefix` (scans on `<prefix>/<robot>/scan`); `extra_args` (and
+    `args` of `start`) are appended to the command line, `env` (in `start`) to the environment.
+    """
 
     def __init__(
         self,
         data_dir: Path,
         token: str | None = None,
-        prefix: str = "robots",
+        prefix: str = DEFAULT_PREFIX,
         *,
+        read_token: str | None = None,
         extra_args: Sequence[str] = (),
         zenoh_endpoint: str | None = None,
         listen_flag: bool = True,
@@ -146,6 +217,7 @@ class ServiceProc:
         endpoint is then `zenoh_endpoint`)."""
         self.data_dir = data_dir
         self.token = token
+        self.read_token = read_token
         self.prefix = prefix
         self.extra_args = list(extra_args)
         self.listen_flag = listen_flag
@@ -178,6 +250,8 @@ class ServiceProc:
             cmd += ["--zenoh-listen", self.zenoh_endpoint]
         if self.token:
             cmd += ["--token", self.token]
+        if self.read_token:
+            cmd += ["--read-token", self.read_token]
         cmd += args or []
         full_env = {k: v for k, v in os.environ.items() if k not in _TOKEN_VARIABLES}
         full_env.update(env or {})
@@ -222,6 +296,7 @@ class ServiceProc:
         return parse_text(self.get("/metrics").text)
 
     def stop(self, sig: int = signal.SIGTERM, timeout_s: float = 20.0) -> int:
+        """Stop with `sig` and return the exit code; fails the test if the service hangs."""
         if self.proc is None:
             return 0
         proc, self.proc = self.proc, None
@@ -246,6 +321,94 @@ class ServiceProc:
             return "\n".join(self.log_path.read_text(errors="replace").splitlines()[-lines:])
         except OSError:
             return "(no log)"
+
+
+_shared: ServiceProc | None = None
+
+
+def shared_service(config: pytest.Config, tmp_factory: pytest.TempPathFactory) -> ServiceProc:
+    """One service (token `SHARED_TOKEN`) for all the tests of a pytest run that only need one to
+    talk to: starting a service costs seconds. Tests use their own robot ids and must not
+    restart it; it is stopped at the end of the run."""
+    global _shared  # noqa: PLW0603 - one per pytest run, stopped at session end
+    if _shared is None or _shared.proc is None or _shared.proc.poll() is not None:
+        service = ServiceProc(tmp_factory.mktemp("shared-service") / "data", token=SHARED_TOKEN)
+        service.start()
+        config.add_cleanup(service.stop)
+        _shared = service
+    return _shared
+
+
+def room_scan(
+    robot_id: str, seq: int, *, x_m: float, y_m: float, theta_rad: float, beams: int = 541
+) -> Scan:
+    """A scan from inside a 12 m x 8 m room with a pillar (enough structure in x and y)."""
+    width_m, height_m = 12.0, 8.0
+    angles = np.linspace(-3 * math.pi / 4, 3 * math.pi / 4, beams)
+    world = theta_rad + angles
+    c, s = np.cos(world), np.sin(world)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tx = np.where(c > 0, (width_m - x_m) / c, np.where(c < 0, -x_m / c, np.inf))
+        ty = np.where(s > 0, (height_m - y_m) / s, np.where(s < 0, -y_m / s, np.inf))
+    ranges = np.minimum(tx, ty)
+    # A 1 m square pillar at (8..9, 5..6) gives corners to match against.
+    for x0, x1, y0, y1 in [(8.0, 9.0, 5.0, 6.0)]:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1 = (np.array([x0, x1])[:, None] - x_m) / c
+            t2 = (np.array([y0, y1])[:, None] - y_m) / s
+        tmin = np.maximum(np.minimum(t1[0], t1[1]), np.minimum(t2[0], t2[1]))
+        tmax = np.minimum(np.maximum(t1[0], t1[1]), np.maximum(t2[0], t2[1]))
+        hit = (tmax >= tmin) & (tmin > 0)
+        ranges = np.where(hit, np.minimum(ranges, tmin), ranges)
+    return Scan(
+        robot_id=robot_id,
+        seq=seq,
+        sensor_stamp_ns=seq * SCAN_PERIOD_NS,
+        host_stamp_ns=time.time_ns(),
+        angle_min_rad=float(angles[0]),
+        angle_increment_rad=float(angles[1] - angles[0]),
+        range_min_m=0.023,
+        range_max_m=30.0,
+        ranges_m=np.clip(ranges, 0.0, 30.0),
+    )
+
+
+class ScanFeeder:
+    """Publishes room scans for one robot at `rate_hz` from a thread, moving slowly along x."""
+
+    def __init__(
+        self, endpoint: str, robot_id: str, rate_hz: float = 20.0, prefix: str = DEFAULT_PREFIX
+    ) -> None:
+        self.robot_id = robot_id
+        self.period_s = 1.0 / rate_hz
+        self.sent = 0
+        self._stop = threading.Event()
+        self._session = zenoh.open(build_zenoh_config(connect=[endpoint]))
+        self._pub = self._session.declare_publisher(scan_key(robot_id, prefix))
+        self._thread = threading.Thread(target=self._run, name=f"feeder-{robot_id}", daemon=True)
+
+    def __enter__(self) -> ScanFeeder:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            step = self.sent
+            x = 3.0 + 0.01 * (step % 400)  # 1 cm per scan, back to the start every 400 scans
+            scan = room_scan(self.robot_id, step, x_m=x, y_m=3.0, theta_rad=0.0)
+            self._pub.put(encode_scan(scan))
+            self.sent += 1
+            self._stop.wait(self.period_s)
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
+        self._pub.undeclare()  # type: ignore[no-untyped-call]
+        self._session.close()  # type: ignore[no-untyped-call]
 
 
 @contextlib.contextmanager

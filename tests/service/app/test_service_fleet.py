@@ -1,17 +1,17 @@
 """Acceptance with real processes on loopback: the demo's agent path against ground truth, a fleet
 of robots in one service, five Zenoh pose subscribers, and a flood of malformed scans.
 
-Tolerance against ground truth (agent path): the estimator's map frame is its first scan's frame,
-so poses are compared as motion relative to the first pose. After 4 m or more of travel, the
-end point must be within 0.3 m + 10 % of the distance travelled, the heading within 3°, and
-the distance travelled within 10 %.
+Against ground truth, poses are compared as motion relative to the first pose (the estimator's map
+frame is its first scan's frame), on several figures at once, so that no single one can be fooled
+(a tracker frozen at its first pose has no end-point error after a loop, but no distance either):
+distance travelled, end-point error, absolute trajectory error (RMS and worst) and final heading.
+The bounds are the measured values plus a stated margin; see `LOCKSTEP` and `AGENT_PATH`.
 """
 
 from __future__ import annotations
 
 import io
 import itertools
-import math
 import re
 import signal
 import subprocess
@@ -19,6 +19,7 @@ import sys
 import threading
 from collections import Counter
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,9 +33,9 @@ from PIL import Image
 from svc_testkit import (
     ServiceProc,
     SimRobot,
+    check_against_truth,
     malformed_payloads,
     metric_sum,
-    relative,
     wait_for,
     zenoh_peer,
 )
@@ -51,61 +52,44 @@ pytestmark = pytest.mark.slow
 # Ground truth helpers
 
 
-def align_to_truth(
-    stamps_ns: np.ndarray, est: np.ndarray, truth_at: Any, search_s: float = 60.0
-) -> tuple[float, np.ndarray]:
-    """Find the scene-time offset of the first pose; return (offset_s, relative truth poses).
-
-    Agent stamps are host times, the emulator's scene time started a little earlier: we search
-    the constant offset that best explains the estimated motion (the error that remains is the
-    estimator's).
-    """
-    dt_s = (stamps_ns - stamps_ns[0]) / 1e9
-    est_rel = relative(est[0], est)
-
-    def truth_rel(offset_s: float) -> np.ndarray:
-        poses = truth_at(offset_s + dt_s)
-        return relative(poses[0], poses)
-
-    def cost(offset_s: float) -> float:
-        # Position and heading (1 rad ~ 1 m): on straight stretches only turns pin the offset.
-        t = truth_rel(offset_s)
-        dth = (t[:, 2] - est_rel[:, 2] + math.pi) % (2 * math.pi) - math.pi
-        return float(np.mean(np.hypot(*(t[:, :2] - est_rel[:, :2]).T) + np.abs(dth)))
-
-    coarse = np.arange(0.0, search_s, 0.1)
-    best = min(coarse, key=cost)
-    fine = np.arange(max(0.0, best - 0.1), best + 0.1, 0.005)
-    best = min(fine, key=cost)
-    return float(best), truth_rel(float(best))
+@dataclass(frozen=True)
+class Tolerance:
+    distance_rel: float  # |distance estimated - true| / true
+    end_error_m: float
+    ate_rms_m: float
+    ate_max_m: float
+    heading_deg: float
 
 
-def check_against_truth(poses: list[dict[str, Any]], truth_at: Any) -> dict[str, float]:
-    stamps = np.array([p["stamp_ns"] for p in poses], dtype=np.int64)
-    est = np.array([(p["x"], p["y"], p["theta"]) for p in poses])
-    _, truth_rel = align_to_truth(stamps, est, truth_at)
-    est_rel = relative(est[0], est)
-    # Path lengths on ~0.5 s steps, first to last pose (per-scan jitter would inflate them).
-    steps = max(2, int((stamps[-1] - stamps[0]) / 0.5e9) + 1)
-    pick = np.unique(np.linspace(0, len(est_rel) - 1, steps).round().astype(int))
-    distance_true = float(np.sum(np.hypot(*np.diff(truth_rel[pick, :2], axis=0).T)))
-    distance_est = float(np.sum(np.hypot(*np.diff(est_rel[pick, :2], axis=0).T)))
-    end_error = float(np.hypot(*(truth_rel[-1, :2] - est_rel[-1, :2])))
-    heading_error = abs((truth_rel[-1, 2] - est_rel[-1, 2] + math.pi) % (2 * math.pi) - math.pi)
-    return {
-        "distance_true_m": distance_true,
-        "distance_est_m": distance_est,
-        "end_error_m": end_error,
-        "heading_error_deg": math.degrees(heading_error),
-    }
+# Scans on a simulated 40 Hz clock, taken in lockstep (deterministic: the same figures in every
+# run). Measured over robots ra, rb, rc (2.08 m each): distance -0.08 .. +0.12 %, end point
+# 1.5-3.3 mm, ATE RMS 2.2-3.2 mm, ATE worst 4.4-7.1 mm, heading 0.014-0.030°. Bounds: about
+# three times the worst, for other machines' floating point and future estimator changes.
+LOCKSTEP = Tolerance(
+    distance_rel=0.01, end_error_m=0.01, ate_rms_m=0.01, ate_max_m=0.02, heading_deg=0.1
+)
+# The demo's agent path: stamps are the agent's wall clock when it read each scan, so load on
+# this machine shifts them against the emulator's scene time (0.7 m/s x the jitter), and the
+# time alignment with them. Measured over 5.0-5.5 m with the machine lightly loaded: distance
+# -0.06 .. -0.003 %, end point 0.6-3.0 mm, ATE RMS 11-21 mm, ATE worst 64-182 mm, heading
+# 0.004-0.016°; in a full suite run with the machine loaded by other work: distance +1.5 %,
+# end point and ATE RMS 78 mm, worst 100 mm, heading 0.036°. Bounds: the loaded run plus
+# about 2.5x on the distances, which a frozen or scaled tracker still fails by far.
+AGENT_PATH = Tolerance(
+    distance_rel=0.05, end_error_m=0.2, ate_rms_m=0.2, ate_max_m=0.5, heading_deg=1.0
+)
 
 
-def assert_within_tolerance(report: dict[str, float], min_distance_m: float) -> None:
+def assert_within_tolerance(
+    report: dict[str, float], min_distance_m: float, tol: Tolerance
+) -> None:
     d = report["distance_true_m"]
     assert d >= min_distance_m, report
-    assert report["end_error_m"] <= 0.3 + 0.1 * d, report
-    assert report["heading_error_deg"] <= 3.0, report
-    assert abs(report["distance_est_m"] - d) <= 0.1 * d, report
+    assert abs(report["distance_est_m"] - d) <= tol.distance_rel * d, report
+    assert report["end_error_m"] <= tol.end_error_m, report
+    assert report["ate_rms_m"] <= tol.ate_rms_m, report
+    assert report["ate_max_m"] <= tol.ate_max_m, report
+    assert report["heading_error_deg"] <= tol.heading_deg, report
 
 
 def map_shows_corridors(png: bytes, pgm: bytes, resolution_m: float) -> None:
@@ -203,7 +187,7 @@ def test_demo_agent_path_matches_ground_truth(tmp_path: Path) -> None:
     assert motion.pose_at(3.0) == WorldScene(1).pose_at(3.0)
     report = check_against_truth(poses, motion.poses_at)
     print("agent path vs ground truth:", report)
-    assert_within_tolerance(report, min_distance_m=4.0)
+    assert_within_tolerance(report, min_distance_m=4.0, tol=AGENT_PATH)
     map_shows_corridors(png, pgm, 0.05)
 
 
@@ -267,7 +251,8 @@ def test_three_robots_each_with_own_session_and_map(service: ServiceProc) -> Non
         assert {p["robot_id"] for p in poses} == {rid}
         assert {p["session_id"] for p in poses} == {sids[rid]}
         report = check_against_truth(poses, lambda t, r=robot: r.motion.poses_at(t))
-        assert_within_tolerance(report, min_distance_m=2.0)
+        print(f"{rid} vs ground truth:", report)
+        assert_within_tolerance(report, min_distance_m=2.0, tol=LOCKSTEP)
         png = service.get(f"/sessions/{sids[rid]}/map.png").content
         images.append(np.asarray(Image.open(io.BytesIO(png)).convert("L")))
     # Three different buildings: three different maps.

@@ -1,9 +1,17 @@
 """ACES, against the published relation errors and at the places where the estimator failed.
 
-With odometry the estimator beats published sequential scan matching (0.087 m measured vs
-0.173 m); without it, it holds the heading quadrant through the whole log (mean rotational
-error below 1°) and a robot standing still in a corridor stands still. The whole log is
-replayed (7,374 SICK scans); see docs/estimator.md for the numbers.
+The whole log is replayed (7,374 SICK scans); see docs/estimator.md for the numbers. Measured
+(mean translational / rotational relation error, 1,279 relations), with two OpenBLAS kernels,
+since without odometry the last bits of the projection matmuls move a decision somewhere in the
+log: the Haswell kernel (what this machine picks when OPENBLAS_CORETYPE is unset, and with it set
+to Haswell or Zen) and the Sandybridge one (also with Prescott):
+
+- with odometry: 0.087 m / 0.485° under both; published sequential scan matching 0.173 m;
+- without odometry: 0.138 m / 0.446° (Haswell), 0.192 m / 0.449° (Sandybridge): the second is
+  worse than the published 0.173 m, which docs/benchmarks.md reports as a miss.
+
+Bounds: the worse kernel plus about 10 %. The core estimator is tested here, not the offline
+mapper, so a back end added to `mapping-service map` does not move these figures.
 """
 
 from __future__ import annotations
@@ -45,8 +53,10 @@ def _aces_relation_errors(*, use_odometry: bool) -> tuple[float, float]:
 @pytest.mark.datasets
 @pytest.mark.timeout(300)
 def test_aces_with_odometry_beats_sequential_scan_matching() -> None:
-    trans_m, _ = _aces_relation_errors(use_odometry=True)
+    trans_m, rot_deg = _aces_relation_errors(use_odometry=True)
     assert trans_m < PUBLISHED_SEQUENTIAL_SCAN_MATCHING_M
+    assert trans_m < 0.095, trans_m  # 0.087 m measured
+    assert rot_deg < 0.53, rot_deg  # 0.485° measured
 
 
 @pytest.mark.slow
@@ -55,8 +65,8 @@ def test_aces_with_odometry_beats_sequential_scan_matching() -> None:
 def test_aces_without_odometry_keeps_the_heading_quadrant() -> None:
     """A lost quadrant puts every later loop relation metres and tens of degrees off."""
     trans_m, rot_deg = _aces_relation_errors(use_odometry=False)
-    assert rot_deg < 1.0
-    assert trans_m < 0.3  # 0.14 m measured (docs/estimator.md); published scan matching 0.173
+    assert rot_deg < 0.5, rot_deg  # 0.446-0.449° measured
+    assert trans_m < 0.21, trans_m  # 0.138-0.192 m measured (published scan matching 0.173)
 
 
 @pytest.mark.slow
@@ -72,4 +82,4 @@ def test_aces_robot_standing_still_in_a_corridor_stays() -> None:
         if i >= 3990:
             poses[i] = est.process(scan_to_laser(scan, use_odometry=False)).pose
     a, b = poses[4095], poses[4190]
-    assert math.hypot(b.x_m - a.x_m, b.y_m - a.y_m) < 0.3
+    assert math.hypot(b.x_m - a.x_m, b.y_m - a.y_m) < 0.12  # 0.089 m measured (both kernels)

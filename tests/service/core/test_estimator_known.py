@@ -240,3 +240,26 @@ def test_odometry_prior_flag_and_reset() -> None:
     est.reset()
     again = est.process(s1)
     assert again.pose == pytest.approx((0.0, 0.0, 0.05), abs=2e-3)
+
+
+def test_odometry_prediction_carries_a_motion_beyond_the_search_window() -> None:
+    """0.6 m between two scans, more than the ±0.25 m searched around an odometry prediction:
+    found only if the prediction really is the previous pose moved by the odometry delta."""
+    segs = room()
+    motion = Pose2D(0.6, -0.3, 0.1)
+    assert math.hypot(motion.x_m, motion.y_m) > EstimatorParams().translation_window_odom_m
+    est = ManhattanEstimator()
+    odom0 = Pose2D(5.0, 5.0, 1.0)
+    for stamp_ns, pose, odom in [
+        (0, Pose2D(0.0, 0.0, 0.0), odom0),
+        (10**8, motion, odom0.compose(motion)),
+    ]:
+        s = cast(segs, pose, stamp_ns=stamp_ns)
+        out = est.process(
+            LaserScan(
+                stamp_ns, s.angle_min_rad, s.angle_increment_rad, s.ranges_m, 0.02, 30.0, odom
+            )
+        )
+    assert out.flags & PoseFlag.ODOMETRY_PRIOR
+    assert math.hypot(out.x_m - motion.x_m, out.y_m - motion.y_m) < 0.01, out.pose
+    assert abs(wrap_angle(out.theta_rad - motion.theta_rad)) < math.radians(0.5), out.pose
