@@ -206,6 +206,7 @@ def test_group_commit_fsyncs_only_changed_recordings(
     runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     runtime = runtime_factory()
+    runtime._stop.set()  # park the periodic syncer first: it would race the counting below
     session = runtime.sessions.create("r1", 0.05, True)
     runtime.sessions.create("idle", 0.05, True)
     feed(runtime, SimRobot("r1"), 2)
@@ -217,8 +218,7 @@ def test_group_commit_fsyncs_only_changed_recordings(
         real_fsync(fd)
 
     monkeypatch.setattr("service.app.store.os.fsync", counting_fsync)
-    runtime._stop.set()  # park the periodic syncer; drive it by hand
-    runtime._sync_once()
+    runtime._sync_once()  # driven by hand
     assert len(synced) == 1  # only the session with new records
     runtime._sync_once()
     assert len(synced) == 1  # nothing new since
