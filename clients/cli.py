@@ -152,6 +152,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session_id", metavar="ID")
     p.add_argument("--format", choices=("tum", "json"), default="tum", help="default: tum")
     p.add_argument("--out", default=None, metavar="FILE", help="write to FILE, not stdout")
+    p.add_argument(
+        "--every",
+        type=int,
+        default=1,
+        metavar="N",
+        help="only every N-th pose (sequences that are multiples of N; default: all). The "
+        "trajectory is fetched page by page whatever its length",
+    )
 
     p = add("maps", "list saved maps, or download one (`maps get`)")
     maps_sub = p.add_subparsers(dest="maps_command", metavar="{get}")
@@ -377,9 +385,9 @@ def _cmd_map(client: MappingClient, args: argparse.Namespace, out: TextIO) -> in
 
 def _cmd_trajectory(client: MappingClient, args: argparse.Namespace, out: TextIO) -> int:
     if args.format == "tum":
-        text = client.get_trajectory_tum(args.session_id)
+        text = client.get_trajectory_tum(args.session_id, every=args.every)
     else:
-        poses = client.get_trajectory(args.session_id)
+        poses = client.get_trajectory(args.session_id, every=args.every)
         text = json.dumps(
             {"session_id": args.session_id, "poses": [p.to_json() for p in poses]}, indent=2
         )

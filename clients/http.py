@@ -424,8 +424,14 @@ class MappingClient:
     def get_session(self, session_id: str) -> Session:
         return Session.from_json(self._json("GET", _session_path(session_id)))
 
-    def delete_session(self, session_id: str) -> None:
-        self._request("DELETE", _session_path(session_id))
+    def delete_session(self, session_id: str, *, keep_maps: bool = False) -> None:
+        """Delete a session, its recording and (unless `keep_maps`) its saved map versions."""
+        params = {"keep_maps": "true"} if keep_maps else None
+        self._request("DELETE", _session_path(session_id), params=params)
+
+    def delete_map(self, map_id: str, version: int) -> None:
+        """Delete one saved map version."""
+        self._request("DELETE", f"/maps/{_segment(map_id)}/{int(version)}")
 
     def stop_session(self, session_id: str) -> Session:
         return Session.from_json(self._json("POST", _session_path(session_id, "stop")))
@@ -444,16 +450,56 @@ class MappingClient:
         409 and code `no_pose_yet` (404 `not_found` means there is no such session)."""
         return PoseView.from_json(self._json("GET", _session_path(session_id, "pose")))
 
-    def get_trajectory(self, session_id: str) -> list[PoseView]:
-        obj = _object(self._json("GET", _session_path(session_id, "trajectory")), "trajectory")
-        return [PoseView.from_json(p) for p in _get_list(obj, "poses", "trajectory")]
-
-    def get_trajectory_tum(self, session_id: str) -> str:
-        """The trajectory as TUM text: `stamp x y z qx qy qz qw` per line."""
-        response = self._request(
-            "GET", _session_path(session_id, "trajectory"), params={"format": "tum"}
+    def get_trajectory_page(
+        self, session_id: str, *, since_seq: int = 0, limit: int | None = None, every: int = 1
+    ) -> tuple[list[PoseView], int | None]:
+        """One page of the trajectory: poses with `sequence >= since_seq` (at most `limit`,
+        the server's page size by default; only multiples of `every`), and the `since_seq`
+        of the next page (None at the end)."""
+        params = {"since_seq": str(since_seq), "every": str(every)}
+        if limit is not None:
+            params["limit"] = str(limit)
+        obj = _object(
+            self._json("GET", _session_path(session_id, "trajectory"), params=params),
+            "trajectory",
         )
-        return response.text
+        poses = [PoseView.from_json(p) for p in _get_list(obj, "poses", "trajectory")]
+        next_seq = obj.get("next_seq")
+        if next_seq is not None and (not isinstance(next_seq, int) or next_seq <= since_seq):
+            raise MappingProtocolError(None, f"trajectory: bad next_seq {next_seq!r}")
+        return poses, next_seq
+
+    def iter_trajectory(
+        self, session_id: str, *, since_seq: int = 0, every: int = 1, page: int | None = None
+    ) -> Iterator[PoseView]:
+        """Every pose from `since_seq` on, fetched page by page (bounded memory per request)."""
+        cursor: int | None = since_seq
+        while cursor is not None:
+            poses, cursor = self.get_trajectory_page(
+                session_id, since_seq=cursor, limit=page, every=every
+            )
+            yield from poses
+
+    def get_trajectory(self, session_id: str, *, every: int = 1) -> list[PoseView]:
+        """The whole trajectory (paged through; `every` decimates)."""
+        return list(self.iter_trajectory(session_id, every=every))
+
+    def get_trajectory_tum(self, session_id: str, *, every: int = 1) -> str:
+        """The trajectory as TUM text: `stamp x y z qx qy qz qw` per line (paged through)."""
+        parts: list[str] = []
+        cursor: str | None = "0"
+        while cursor is not None:
+            response = self._request(
+                "GET",
+                _session_path(session_id, "trajectory"),
+                params={"format": "tum", "since_seq": cursor, "every": str(every)},
+            )
+            parts.append(response.text)
+            following = response.headers.get("x-next-seq")
+            if following is not None and (not following.isdigit() or int(following) <= int(cursor)):
+                raise MappingProtocolError(None, f"trajectory: bad X-Next-Seq {following!r}")
+            cursor = following
+        return "".join(parts)
 
     def stream_poses(
         self, session_id: str, *, read_timeout_s: float | None = None
@@ -545,8 +591,15 @@ class MappingClient:
             raise _error_from_response(response)
         return response
 
-    def _json(self, method: str, path: str, *, json_body: object = None) -> object:
-        response = self._request(method, path, json_body=json_body)
+    def _json(
+        self,
+        method: str,
+        path: str,
+        *,
+        json_body: object = None,
+        params: Mapping[str, str] | None = None,
+    ) -> object:
+        response = self._request(method, path, json_body=json_body, params=params)
         try:
             return response.json()
         except ValueError as err:

@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
         description=(
             "Map buildings from 2D laser scans. `serve` runs the networked service, `map` maps a "
             "recording offline, `export` writes one as MCAP, `demo` runs the service with a "
-            "simulated robot."
+            "simulated robot, `fsck` checks a data directory."
         ),
     )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
@@ -187,8 +187,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="this instance's name on Zenoh, <prefix>/_instances/<ID> (or env "
         "MAPPING_INSTANCE_ID; default: <hostname>-<http port>)",
     )
+    p_serve.add_argument(
+        "--retain-recordings",
+        type=float,
+        default=None,
+        metavar="DAYS",
+        help="prune the scans of recording segments older than DAYS (fractions allowed) once "
+        "two checkpoints cover them; their poses stay, so trajectories are kept whole "
+        "(or env MAPPING_RETAIN_RECORDINGS_DAYS; default: keep everything)",
+    )
     _add_zenoh_args(p_serve)
     p_serve.set_defaults(handler="service.app.main:run_serve")
+
+    p_fsck = sub.add_parser(
+        "fsck",
+        help="check a data directory for damaged sessions (and repair what is provable)",
+        description=(
+            "Check every session of a data directory: session.json, each recording segment "
+            "(damaged records, torn tails) and each checkpoint (checksum). Without --repair "
+            "nothing is written. With --repair, a damaged recording segment is rewritten with "
+            "its intact records only (the original is kept as <file>.bak-<time>) and a "
+            "checkpoint that fails its checksum is moved aside; a torn tail is reported (the "
+            "service cuts it when it appends again); nothing is guessed: "
+            "a session.json that cannot be read is reported, not rewritten. Run it while the "
+            "service is stopped (it takes the data directory's lock)."
+        ),
+        epilog="Exit codes: 0 nothing damaged; 1 damage found (and not all of it repaired); "
+        "2 usage error or the directory is in use; 3 damage found and all of it repaired.",
+    )
+    p_fsck.add_argument("data_dir", metavar="DATA_DIR", help="the service's --data-dir")
+    p_fsck.add_argument("--repair", action="store_true", help="repair what can be proven")
+    p_fsck.add_argument("--json", action="store_true", help="print the report as JSON")
+    p_fsck.set_defaults(handler="service.fsck:run_fsck")
 
     p_demo = sub.add_parser(
         "demo",
@@ -227,6 +257,11 @@ def configure_logging(verbosity: int) -> None:
     logging.basicConfig(
         level=level, format="%(asctime)s %(levelname)-7s %(name)s: %(message)s", stream=sys.stderr
     )
+    from service.app.limits import RepeatFilter  # noqa: PLC0415  # keeps `--help` light
+
+    repeat = RepeatFilter()
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(repeat)  # e.g. asyncio's accept() storm at the descriptor limit
 
 
 def main(argv: Sequence[str] | None = None) -> int:

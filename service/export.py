@@ -1,9 +1,9 @@
 """`mapping-service export SESSION_OR_RECORDING --mcap OUT`: a session or a recording as MCAP.
 
-SESSION_OR_RECORDING is a `.mrec` recording file, or the id of a session in `--data-dir` (its
-current recording is read in place; the service may be running). The final map is built from
-the recorded scans at their recorded poses (`service.mcapio.MapBuilder`). The file is written
-next to OUT and renamed when complete, so OUT is never a half-written file.
+SESSION_OR_RECORDING is a `.mrec` recording file, or the id of a session in `--data-dir` (the
+segments of its current recording are read in place, in order; the service may be running). The
+final map is built from the recorded scans at their recorded poses (`service.mcapio.MapBuilder`).
+The file is written next to OUT and renamed when complete, so OUT is never a half-written file.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 
 from clients.recording import RecordingError, is_recording, read_messages
-from service.app.store import SessionMeta
+from service.app.store import SessionMeta, segment_files
 from service.mcapio import MapBuilder, with_map, write_mcap
 
 log = logging.getLogger(__name__)
@@ -28,13 +28,14 @@ class ExportError(Exception):
     """A one-line reason the export cannot be done."""
 
 
-def find_recording(source: str, data_dir: Path) -> tuple[Path, float]:
-    """The recording file and its map resolution for a path or a session id."""
+def find_recording(source: str, data_dir: Path) -> tuple[list[Path], float]:
+    """The recording files (a session's segments, in order) and the map resolution for a path
+    or a session id."""
     path = Path(source)
     if path.is_file():
         if not is_recording(path):
             raise ExportError(f"{path}: not a recording (.mrec)")
-        return path, 0.05
+        return [path], 0.05
     session_dir = data_dir / "sessions" / source
     meta_path = session_dir / "session.json"
     if not meta_path.is_file():
@@ -45,8 +46,8 @@ def find_recording(source: str, data_dir: Path) -> tuple[Path, float]:
         meta = SessionMeta.from_json(meta_path.read_bytes())
     except (OSError, ValueError, KeyError, TypeError) as err:
         raise ExportError(f"{meta_path}: unreadable: {err}") from err
-    recording = session_dir / f"epoch-{meta.epoch:06d}.mrec"
-    if not recording.is_file():
+    recording = segment_files(session_dir, meta.epoch)
+    if not recording:
         raise ExportError(f"session {source}: no recording yet (no scan since its start or reset)")
     return recording, meta.resolution_m
 
@@ -69,7 +70,8 @@ def export_mcap(source: str, data_dir: Path, out: Path) -> dict[str, int]:
     partial = out.with_name(out.name + ".partial")
     try:
         with partial.open("wb") as f:
-            counts = write_mcap(with_map(read_messages(recording), builder), f, builder.snapshot)
+            messages = (m for path in recording for m in read_messages(path))
+            counts = write_mcap(with_map(messages, builder), f, builder.snapshot)
             f.flush()
             os.fsync(f.fileno())
         partial.replace(out)

@@ -66,3 +66,10 @@ class TransportError(ServiceError):
 
     status = 503
     default_code = "zenoh_unavailable"
+
+
+class UnavailableError(ServiceError):
+    """Not now: the resource is restoring, or the service is at a resource limit (503)."""
+
+    status = 503
+    default_code = "unavailable"

@@ -445,8 +445,8 @@ class FoxgloveView:
         if not map_wanted and not trajectory_wanted:
             return
         session: _Session | None = robot.session
-        if session is None:
-            return
+        if session is None or getattr(session, "status", "ok") == "restoring":
+            return  # a restoring session has no map or trajectory to show yet
         stamp_ns = time.time_ns()
         if map_wanted and (
             robot.map_sent is None

@@ -18,6 +18,7 @@ import uvicorn
 
 from service.app.api.app import create_app
 from service.app.errors import ServiceError, SettingsError
+from service.app.limits import raise_nofile_limit
 from service.app.runtime import MappingRuntime
 from service.app.settings import ServiceSettings, build_settings
 
@@ -29,6 +30,7 @@ EXIT_USAGE = 2
 GIL_SWITCH_INTERVAL_S = 0.001
 
 OnReady = Callable[[str], None]
+ACCEPT_BACKLOG = 128
 
 
 class _Server(uvicorn.Server):
@@ -87,6 +89,10 @@ def serve_http(
         access_log=log.isEnabledFor(logging.DEBUG),
         timeout_graceful_shutdown=3,
         lifespan="on",
+        # At the descriptor limit asyncio retries accept() once per backlog slot, each failure
+        # logged and rescheduled: a smaller backlog bounds that storm (and is plenty for a
+        # service whose clients are a fleet's tools and browsers).
+        backlog=ACCEPT_BACKLOG,
     )
     server = _Server(config, runtime)
     failed = threading.Event()
@@ -180,6 +186,9 @@ def run_serve(args: argparse.Namespace) -> int:
     if getattr(args, "verbose", 0) == 0:
         # A daemon reports its start-up and lifecycle by default; -v adds more.
         logging.getLogger("service").setLevel(logging.INFO)
+    before, after = raise_nofile_limit()  # before the settings: the robot limit derives from it
+    if after != before:
+        log.info("descriptor limit raised from %d to %d", before, after)
     try:
         settings = build_settings(args)
     except SettingsError as err:

@@ -18,7 +18,6 @@ import contextlib
 import logging
 import multiprocessing
 import multiprocessing.connection
-import pickle
 import signal
 import threading
 from collections.abc import Callable
@@ -26,6 +25,7 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
 from clients.wire import Scan, decode_scan
+from service.app import statecodec
 from service.core.types import LaserScan, Pose2D, PoseEstimate
 
 log = logging.getLogger(__name__)
@@ -150,12 +150,18 @@ class LocalMapper:
     def snapshot(self) -> Any:
         return self._grid.snapshot()
 
+    def _allowed_modules(self) -> tuple[str, ...]:
+        """Where the checkpoint codec may find classes: the core and our own factories'."""
+        return ("service.core", type(self._estimator).__module__, type(self._grid).__module__)
+
     def state(self) -> bytes:
-        return pickle.dumps((self._estimator, self._grid), protocol=pickle.HIGHEST_PROTOCOL)
+        """Estimator and grid as data (arrays plus JSON, compressed): no code, see statecodec."""
+        return statecodec.encode((self._estimator, self._grid), self._allowed_modules())
 
     def restore(self, state: bytes) -> None:
-        # Our own checkpoint, from this service's data directory: as trusted as its code.
-        estimator, grid = pickle.loads(state)
+        estimator, grid = statecodec.decode(state, self._allowed_modules())
+        if type(estimator) is not type(self._estimator) or type(grid) is not type(self._grid):
+            raise statecodec.StateCodecError("checkpoint of another estimator or grid type")
         self._estimator, self._grid = estimator, grid
 
     def close(self) -> None:

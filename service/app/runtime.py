@@ -44,6 +44,7 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 DUPLICATE_PUBLISHERS = "mapping_duplicate_publishers_total"
+HOUSEKEEPING_PERIOD_S = 10.0
 
 
 class MappingRuntime:
@@ -67,6 +68,7 @@ class MappingRuntime:
             engine=engine,
             make_mapper=self.mapper_pool.new_mapper if self.mapper_pool is not None else None,
             render_map_files=render.map_files,
+            max_open_sessions=settings.ingest.max_robots,
         )
         prefix = settings.zenoh.prefix
         self.fanout = PoseFanout(
@@ -105,6 +107,7 @@ class MappingRuntime:
         self._stop = threading.Event()
         self._syncer: threading.Thread | None = None
         self.fsync_errors = 0
+        self.pruned_bytes = 0
         self.started_ns = 0
         self.metrics.gauge("mapping_sessions", "Sessions by state.", self._session_gauge)
         if self.mapper_pool is not None:
@@ -114,6 +117,37 @@ class MappingRuntime:
                 "Mapper processes started again after they died.",
                 lambda: [(labels(), float(pool.restarts))],
             )
+        self.metrics.gauge(
+            "mapping_sessions_status",
+            "Sessions by restore status: ok, restoring, degraded (damage found and skipped), "
+            "damaged (files that cannot be restored; kept for fsck).",
+            self._status_gauge,
+        )
+        self.metrics.gauge(
+            "mapping_session_records_lost",
+            "Records lost to damage in a session's recording (a lower bound), by session.",
+            lambda: self._damage_gauge("records_lost"),
+        )
+        self.metrics.gauge(
+            "mapping_session_bytes_lost",
+            "Bytes of a session's recording skipped as damaged, by session.",
+            lambda: self._damage_gauge("bytes_lost"),
+        )
+        self.metrics.gauge(
+            "mapping_session_checkpoints_rejected",
+            "Checkpoints rejected at restore (checksum, format), by session: replayed instead.",
+            lambda: self._damage_gauge("checkpoints_rejected"),
+        )
+        self.metrics.gauge(
+            "mapping_recordings_open",
+            "Recording files open (sessions whose robot sent a scan in the last 30 s).",
+            lambda: [(labels(), float(sum(s.writer_open for s in self.sessions.list())))],
+        )
+        self.metrics.gauge(
+            "mapping_recordings_pruned_bytes",
+            "Bytes of covered scans pruned by the retention policy since the start.",
+            lambda: [(labels(), float(self.pruned_bytes))],
+        )
         self.metrics.gauge(
             "mapping_robots_alive",
             "Robots whose agent liveliness token is present.",
@@ -131,13 +165,15 @@ class MappingRuntime:
             t0 = time.monotonic()
             self.sessions.load_all()
             log.info(
-                "restored %d sessions from %s in %.2f s",
+                "found %d sessions in %s in %.2f s; restoring them in the background",
                 len(self.sessions.list()),
                 self.data.root,
                 time.monotonic() - t0,
             )
             self._open_zenoh()
             self._start_foxglove()
+            # HTTP serves at once: each session reports `restoring` until it is replayed.
+            self.sessions.restore_all(background=True)
             self._syncer = threading.Thread(target=self._sync_loop, name="fsync", daemon=True)
             self._syncer.start()
             self.started_ns = time.time_ns()
@@ -238,12 +274,27 @@ class MappingRuntime:
             self.publishers.token_changed(robot_id, source, sample.kind == zenoh.SampleKind.PUT)
 
     def _sync_loop(self) -> None:
-        """Group commit: fsync every recording that changed, once per interval."""
+        """Group commit: fsync every recording that changed, once per interval; close the
+        recordings of idle sessions; apply the retention policy."""
         interval = self.settings.storage.fsync_interval_s
-        if interval <= 0:
-            return  # every append is fsynced by its writer
-        while not self._stop.wait(interval):
-            self._sync_once()
+        period = interval if interval > 0 else 1.0  # with 0 every append is fsynced already
+        next_housekeeping = time.monotonic()
+        while not self._stop.wait(period):
+            if interval > 0:
+                self._sync_once()
+            if time.monotonic() >= next_housekeeping:
+                next_housekeeping = time.monotonic() + HOUSEKEEPING_PERIOD_S
+                self.housekeeping()
+
+    def housekeeping(self) -> None:
+        """Close idle recordings (descriptors) and prune what the retention policy allows."""
+        self.sessions.close_idle()
+        days = self.settings.storage.retain_recordings_days
+        if days is not None and not self.sessions.restoring:
+            freed = self.sessions.prune(days * 86400.0)
+            if freed:
+                log.info("retention: %d bytes of covered scans pruned", freed)
+                self.pruned_bytes += freed
 
     def _sync_once(self) -> None:
         for session in self.sessions.list():
@@ -330,6 +381,20 @@ class MappingRuntime:
 
     def _alive_gauge(self) -> list[tuple[Labels, float]]:
         return [(labels(), float(len(self.alive_robots())))]
+
+    def _status_gauge(self) -> list[tuple[Labels, float]]:
+        counts = dict.fromkeys(("ok", "restoring", "degraded", "damaged"), 0)
+        for session in self.sessions.list():
+            counts[session.status] += 1
+        return [(labels(status=k), float(v)) for k, v in counts.items()]
+
+    def _damage_gauge(self, name: str) -> list[tuple[Labels, float]]:
+        out = []
+        for session in self.sessions.list():
+            value = getattr(session.damage, name)
+            if value:
+                out.append((labels(session=session.id), float(value)))
+        return out
 
     def _session_gauge(self) -> list[tuple[Labels, float]]:
         counts = {"active": 0, "stopped": 0}

@@ -3,26 +3,45 @@
 A `MappingSession` is driven by exactly one ingest worker (its robot's) and read by HTTP handlers;
 its lock serialises the two. Every accepted scan, then its pose, is appended to the session's
 recording before the counters and the trajectory show it, so a restart that replays the recording
-(`SessionManager.load_all`) rebuilds exactly what clients were told.
+rebuilds exactly what clients were told.
+
+A restart registers every session at once, in status `restoring`, and replays them in a
+background thread (`SessionManager.load_all` then `restore_all`), so HTTP answers at once. While
+a session restores, its control and map requests answer 503, and its robot's scans wait in a
+bounded buffer that is recorded and mapped when the replay ends. Damage found in a session's
+files (a damaged record, a rejected checkpoint, an unreadable `session.json`) never drops the
+session: it is restored from what is intact and reported as `degraded` (or `damaged` when it
+cannot be restored at all), with the records and bytes lost.
 """
 
 from __future__ import annotations
 
+import bisect
+import errno
 import logging
 import math
-import pickle
 import threading
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Final, NamedTuple
+from typing import Any, Final, Literal, NamedTuple
 
 import numpy as np
 import numpy.typing as npt
 
-from clients.recording import MAX_RECORD_BYTES
+from clients.recording import MAGIC as RECORDING_MAGIC
+from clients.recording import (
+    MAX_RECORD_BYTES,
+    Damage,
+    RawRecord,
+    RecordingReport,
+    iter_raw_records,
+    record_kind,
+)
 from clients.wire import (
+    ROBOT_ID_PATTERN,
     DecodeError,
     Pose,
     PoseFlag,
@@ -31,7 +50,13 @@ from clients.wire import (
     decode_scan,
     encode_pose,
 )
-from service.app.errors import ConflictError, NotFoundError, StoreError
+from service.app import checkpoint as ckpt
+from service.app.errors import (
+    ConflictError,
+    NotFoundError,
+    StoreError,
+    UnavailableError,
+)
 from service.app.mapper import (
     Engine,
     MappedScan,
@@ -45,15 +70,27 @@ from service.app.store import (
     DataDir,
     MapStore,
     SavedMapMeta,
+    Segment,
     SessionMeta,
     SessionState,
     SessionStore,
     check_id,
     new_session_id,
+    parse_segment,
+    read_meta,
     write_atomic,
 )
 
 log = logging.getLogger(__name__)
+
+SessionStatus = Literal["restoring", "ok", "degraded", "damaged"]
+
+# Scans of a restoring session's robot held in memory until its replay ends (100 s at 40 Hz).
+HELD_SCANS_MAX: Final = 4096
+# A session whose robot sent nothing for this long has its recording closed (descriptors).
+IDLE_CLOSE_S: Final = 30.0
+# Checkpoints kept per session: the newest, and one before it in case the newest is damaged.
+CHECKPOINTS_KEPT: Final = 2
 
 
 @dataclass(frozen=True, slots=True)
@@ -62,6 +99,21 @@ class MapSnapshot:
     trajectory_xy_m: npt.NDArray[np.float64]  # (N, 2)
     last_pose: Pose | None
     revision: int
+
+
+@dataclass(frozen=True, slots=True)
+class DamageSummary:
+    """What a restore found wrong in a session's files."""
+
+    records_lost: int = 0  # a lower bound where a length field was damaged
+    bytes_lost: int = 0
+    regions: int = 0  # damaged stretches of the recording
+    checkpoints_rejected: int = 0  # checksum or format failures (replayed instead)
+    notes: tuple[str, ...] = ()
+
+    @property
+    def found(self) -> bool:
+        return bool(self.regions or self.checkpoints_rejected or self.notes)
 
 
 @dataclass(frozen=True, slots=True)
@@ -77,43 +129,35 @@ class SessionInfo:
     resolution_m: float
     use_odometry: bool
     last_pose: Pose | None
-
-
-@dataclass(frozen=True, slots=True)
-class _Checkpoint:
-    """Estimator and grid after the first `records` records of recording epoch `epoch`.
-
-    A checkpoint only shortens a restart: the recording stays the source of truth, and a
-    checkpoint that does not match it is ignored (full replay).
-    """
-
-    epoch: int
-    records: int
-    scans_accepted: int
-    map_revision: int
-    mapper_state: bytes  # `Mapper.state()`: estimator and grid
-
-
-CHECKPOINT_FILE = "checkpoint.pickle"
+    status: SessionStatus = "ok"
+    damage: DamageSummary = field(default_factory=DamageSummary)
 
 
 class Ingested(NamedTuple):
     """What `MappingSession.ingest` did with a scan."""
 
     accepted: bool
-    pose: Pose | None  # None when not accepted or when the estimator failed
+    pose: Pose | None  # None when not accepted, when held during a restore, or estimator failed
     pose_bytes: bytes | None  # `encode_pose(pose)`, as recorded
 
 
 _NOT_ACCEPTED: Final = Ingested(False, None, None)
+_HELD: Final = Ingested(True, None, None)
+
+
+class _CancelledError(Exception):
+    """The service is shutting down in the middle of a replay."""
 
 
 class MappingSession:
     # A restart replays only the scans after the last checkpoint; one a minute at 40 Hz
-    # bounds that replay to about a minute of estimator time.
+    # bounds that replay to about a minute of estimator time. Each checkpoint also starts a
+    # new recording segment (retention prunes whole segments).
     checkpoint_every_scans = 2400
 
-    def __init__(self, store: SessionStore, make_mapper: MapperFactory) -> None:
+    def __init__(
+        self, store: SessionStore, make_mapper: MapperFactory, *, restoring: bool = False
+    ) -> None:
         meta = store.meta
         self.id = meta.id
         self.robot_id = meta.robot_id
@@ -123,16 +167,42 @@ class MappingSession:
         self.lock = threading.Lock()
         self._store = store
         self._make_mapper = make_mapper
-        self._mapper: Mapper = make_mapper(meta.id, meta.use_odometry, meta.resolution_m)
+        self._mapper: Mapper | None = None
         self._poses: list[Pose] = []
         self._deleted = False
         self.scans_accepted = 0
         self.estimator_errors = 0
         self.map_revision = 0
         self._image_cache: tuple[Any, int] | None = None
-        self._records = 0  # records in the current recording epoch
         self._payload: bytes | None = None  # wire bytes of the scan being estimated (lock held)
+        self._ckpt_segment = 0  # the segment the checkpoint in use starts (0: none)
+        self._records_tail = 0  # records in segments >= _ckpt_segment
         self._checkpoint_scans = 0  # scans_accepted at the last checkpoint
+        self._restoring = restoring
+        self._held: deque[tuple[bytes, Scan]] = deque()
+        self.held_dropped = 0
+        self._damage = DamageSummary()
+        self._broken = False  # `damaged`: files that cannot be restored at all
+        self._cancel = threading.Event()
+        if not restoring:
+            self._mapper = make_mapper(meta.id, meta.use_odometry, meta.resolution_m)
+
+    @classmethod
+    def damaged(cls, directory: Path, reason: str, make_mapper: MapperFactory) -> MappingSession:
+        """A placeholder for a session folder whose `session.json` cannot be read: listed,
+        reported, deletable, never mapped into, and its files left as they are."""
+        meta = SessionMeta(
+            id=directory.name,
+            robot_id=_robot_id_from_recording(directory) or "unknown",
+            created_ns=int(directory.stat().st_mtime * 1e9),
+            state="stopped",
+            resolution_m=0.05,
+            use_odometry=True,
+        )
+        session = cls(SessionStore(directory, meta, fsync_each=False), make_mapper)
+        session._broken = True
+        session._damage = DamageSummary(notes=(reason,))
+        return session
 
     @property
     def state(self) -> SessionState:
@@ -140,7 +210,28 @@ class MappingSession:
 
     @property
     def is_active(self) -> bool:
-        return self.state == "active" and not self._deleted
+        return self.state == "active" and not self._deleted and not self._broken
+
+    @property
+    def status(self) -> SessionStatus:
+        if self._broken:
+            return "damaged"
+        if self._restoring:
+            return "restoring"
+        return "degraded" if self._damage.found else "ok"
+
+    @property
+    def damage(self) -> DamageSummary:
+        return self._damage
+
+    def _ready(self) -> Mapper:
+        """The mapper, for requests that need the restored state (lock held); 503 otherwise."""
+        if self._restoring:
+            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
+        if self._broken:
+            raise ConflictError(f"session {self.id} has damaged files (see mapping-service fsck)")
+        assert self._mapper is not None
+        return self._mapper
 
     # -- the hot path (ingest worker) ---------------------------------------------------------
 
@@ -148,25 +239,35 @@ class MappingSession:
         """Record, estimate and map one validated scan.
 
         Not accepted, and nothing recorded, when the session is no longer active. An accepted
-        scan has no pose only if the estimator failed on it. The pose comes with its wire
-        encoding, the bytes just recorded, so that publishing does not encode it again.
+        scan has no pose only if the estimator failed on it, or if it is held until the
+        session's restore ends. The pose comes with its wire encoding, the bytes just recorded,
+        so that publishing does not encode it again.
         """
         with self.lock:
             if not self.is_active:
                 return _NOT_ACCEPTED
-            self._store.append(payload)  # durable before it counts
-            self._records += 1
-            self.scans_accepted += 1
-            pose = self._estimate_payload(scan, payload)
-            encoded: bytes | None = None
-            if pose is not None:
-                encoded = encode_pose(pose)
-                self._store.append(encoded)
-                self._records += 1
-                self._poses.append(pose)
-            if self.scans_accepted - self._checkpoint_scans >= self.checkpoint_every_scans:
-                self._write_checkpoint()
-            return Ingested(True, pose, encoded)
+            if self._restoring:
+                if len(self._held) >= HELD_SCANS_MAX:
+                    self._held.popleft()
+                    self.held_dropped += 1
+                self._held.append((payload, scan))
+                return _HELD
+            return self._ingest_locked(payload, scan)
+
+    def _ingest_locked(self, payload: bytes, scan: Scan) -> Ingested:
+        self._store.append(payload)  # durable before it counts
+        self._records_tail += 1
+        self.scans_accepted += 1
+        pose = self._estimate_payload(scan, payload)
+        encoded: bytes | None = None
+        if pose is not None:
+            encoded = encode_pose(pose)
+            self._store.append(encoded)
+            self._records_tail += 1
+            self._poses.append(pose)
+        if self.scans_accepted - self._checkpoint_scans >= self.checkpoint_every_scans:
+            self._write_checkpoint()
+        return Ingested(True, pose, encoded)
 
     def _estimate_payload(self, scan: Scan, payload: bytes) -> Pose | None:
         """`_estimate` of a scan whose wire bytes are at hand: a mapper in another process is
@@ -198,7 +299,7 @@ class MappingSession:
         return Pose(
             session_id=self.id,
             robot_id=self.robot_id,
-            seq=len(self._poses),
+            seq=self._poses[-1].seq + 1 if self._poses else 0,  # = len unless records were lost
             stamp_ns=scan.stamp_ns,
             x_m=mapped.x_m,
             y_m=mapped.y_m,
@@ -210,6 +311,7 @@ class MappingSession:
 
     def _map(self, scan: Scan, payload: bytes | None) -> MappedScan:
         """The mapper's answer; a lost mapper (its process died) is rebuilt first (lock held)."""
+        assert self._mapper is not None
         try:
             return self._mapper.map_scan(scan, payload)
         except MapperLostError as err:
@@ -217,107 +319,227 @@ class MappingSession:
             self._rebuild_mapper()
             return self._mapper.map_scan(scan, payload)
 
+    def _new_mapper(self) -> Mapper:
+        if self._mapper is not None:
+            self._mapper.close()
+        self._mapper = self._make_mapper(self.id, self.use_odometry, self.resolution_m)
+        return self._mapper
+
     def _rebuild_mapper(self) -> None:
         """A new mapper with the state of every record before the current one (lock held):
         the checkpoint's, then the recorded scans after it, as a restart would."""
-        self._mapper.close()
-        self._mapper = self._make_mapper(self.id, self.use_odometry, self.resolution_m)
-        upto = self._records - 1  # the current scan is recorded already; the caller maps it
-        checkpoint = self._load_checkpoint()
-        skip = 0
-        if checkpoint is not None and checkpoint.records <= upto:
-            skip = self._restore(checkpoint)
-        replayed = 0
-        for index, record in enumerate(self._store.records()):
-            if index >= upto:
-                break
-            if index < skip or record.kind != "scan":
-                continue
+        mapper = self._new_mapper()
+        start = 0
+        if self._ckpt_segment:
             try:
-                scan = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
-                self._mapper.map_scan(scan, record.payload)
-            except DecodeError:
+                _, state = ckpt.read(self._store.checkpoint_path(self._ckpt_segment))
+                mapper.restore(state)
+                start = self._ckpt_segment
+            except Exception as err:  # the recording is the truth; a checkpoint saves time
+                log.warning("session %s: checkpoint does not restore: %s", self.id, err)
+                mapper = self._new_mapper()
+        tail_seen = 0
+        replayed = 0
+        upto = self._records_tail - 1  # the current scan is recorded already; the caller maps it
+        for seg in self._store.segments():
+            if seg.index < start:
                 continue
-            replayed += 1
+            for record in self._store.records(seg):
+                in_tail = seg.index >= self._ckpt_segment
+                if in_tail:
+                    if tail_seen >= upto:
+                        break
+                    tail_seen += 1
+                if record.kind != "scan":
+                    continue
+                try:
+                    scan = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
+                    mapper.map_scan(scan, record.payload)
+                except DecodeError:
+                    continue
+                replayed += 1
         self.map_revision += 1
         log.info("session %s: map rebuilt (%d scans re-estimated)", self.id, replayed)
 
-    # -- recovery -------------------------------------------------------------------------
+    # -- checkpoints ------------------------------------------------------------------------
 
     def _write_checkpoint(self) -> None:
-        """Persist estimator and grid (lock held); the recording is fsynced first so that a
-        checkpoint never refers to records a power loss could take back."""
+        """Persist estimator and grid (lock held) and start a new recording segment. The
+        recording is fsynced first so that a checkpoint never covers records a power loss
+        could take back."""
+        assert self._mapper is not None
         try:
-            checkpoint = _Checkpoint(
+            state = self._mapper.state()
+            segment = self._store.roll()  # fsyncs and closes the segment the checkpoint covers
+            header = ckpt.CheckpointHeader(
                 epoch=self._store.meta.epoch,
-                records=self._records,
+                segment=segment,
                 scans_accepted=self.scans_accepted,
+                poses=len(self._poses),
                 map_revision=self.map_revision,
-                mapper_state=self._mapper.state(),
             )
-            self._store.sync()
-            data = pickle.dumps(checkpoint, protocol=pickle.HIGHEST_PROTOCOL)
-            write_atomic(self._store.directory / CHECKPOINT_FILE, data)
-        except (OSError, MapperError, pickle.PicklingError, TypeError) as err:
+            write_atomic(self._store.checkpoint_path(segment), ckpt.encode(header, state))
+            self._ckpt_segment = segment
+            self._records_tail = 0
+            self._drop_old_checkpoints(segment)
+        except (OSError, MapperError, ValueError, TypeError) as err:
             log.warning("session %s: checkpoint not written: %s", self.id, err)
         self._checkpoint_scans = self.scans_accepted
 
-    def _restore(self, checkpoint: _Checkpoint) -> int:
-        """The mapper from `checkpoint` (lock held): the records it covers, or 0 when its state
-        does not restore (pickled by an older version, say) and everything is replayed."""
-        try:
-            self._mapper.restore(checkpoint.mapper_state)
-        except Exception as err:  # the recording is the truth; a checkpoint only saves time
-            log.warning("session %s: checkpoint does not restore, replaying all: %s", self.id, err)
-            self._mapper.close()
-            self._mapper = self._make_mapper(self.id, self.use_odometry, self.resolution_m)
-            return 0
-        return checkpoint.records
+    def _drop_old_checkpoints(self, newest: int) -> None:
+        """Keep the newest checkpoint and the newest other one that passes its checksum (the
+        fallback if the newest is damaged later); delete the rest."""
+        fallback_found = False
+        for segment, path in self._store.checkpoint_paths():
+            if segment == newest:
+                continue
+            if not fallback_found:
+                try:
+                    ckpt.read(path)
+                    fallback_found = True
+                    continue
+                except ckpt.CheckpointError:
+                    pass
+            path.unlink(missing_ok=True)
 
-    def _load_checkpoint(self) -> _Checkpoint | None:
-        """The session's checkpoint if it matches the recording, else None (full replay)."""
-        path = self._store.directory / CHECKPOINT_FILE
-        if not path.exists():
-            return None
+    def _checkpoints(self) -> Iterator[tuple[ckpt.CheckpointHeader, bytes]]:
+        """This epoch's checkpoints that pass their checksum, newest first; each rejected
+        one is counted and logged."""
+        for segment, path in self._store.checkpoint_paths():
+            try:
+                header, state = ckpt.read(path)
+                if header.epoch != self._store.meta.epoch or header.segment != segment:
+                    raise ckpt.CheckpointError("names another epoch or segment")
+            except ckpt.CheckpointError as err:
+                self._note_checkpoint_rejected(f"{path.name}: {err}")
+                continue
+            yield header, state
+
+    def _note_checkpoint_rejected(self, detail: str) -> None:
+        log.warning(
+            "session %s: checkpoint rejected (%s); replaying the recording", self.id, detail
+        )
+        self._damage = replace(
+            self._damage,
+            checkpoints_rejected=self._damage.checkpoints_rejected + 1,
+            notes=(*self._damage.notes, f"checkpoint rejected ({detail}); replayed instead"),
+        )
+
+    # -- recovery ---------------------------------------------------------------------------
+
+    def restore(self) -> None:
+        """Replay the recording (from the newest checkpoint that restores), then the scans held
+        meanwhile; the session is then ready. Reads each recording segment once."""
+        t0 = time.monotonic()
         try:
-            # The data directory is this service's own state, as trusted as its code.
-            checkpoint = pickle.loads(path.read_bytes())
-        except Exception as err:  # any unpickling failure (e.g. after an upgrade)
-            log.warning("session %s: checkpoint unreadable, replaying all: %s", self.id, err)
-            return None
-        if not isinstance(checkpoint, _Checkpoint) or checkpoint.epoch != self._store.meta.epoch:
-            return None
-        if sum(1 for _ in self._store.records()) < checkpoint.records:
-            log.warning("session %s: checkpoint ahead of the recording, replaying all", self.id)
-            return None
-        return checkpoint
+            self._replay()
+        except _CancelledError:
+            log.info("session %s: restore interrupted by shutdown", self.id)
+            return
+        with self.lock:
+            held = list(self._held)
+            self._held.clear()
+            self._restoring = False
+            for payload, scan in held:
+                if not self.is_active:
+                    break
+                try:
+                    self._ingest_locked(payload, scan)
+                except (OSError, StoreError) as err:
+                    log.error("session %s: a held scan could not be recorded: %s", self.id, err)
+        if self.held_dropped:
+            log.warning(
+                "session %s: %d scans arrived during the restore beyond the %d held; dropped",
+                self.id,
+                self.held_dropped,
+                HELD_SCANS_MAX,
+            )
+        level = logging.WARNING if self._damage.found else logging.INFO
+        log.log(
+            level,
+            "session %s (robot %s, %s): restored %d scans, %d poses in %.2f s%s",
+            self.id,
+            self.robot_id,
+            self.state,
+            self.scans_accepted,
+            len(self._poses),
+            time.monotonic() - t0,
+            f"; DEGRADED: {self._damage_text()}" if self._damage.found else "",
+        )
 
     def replay(self) -> None:
-        """Rebuild estimator, grid, counters and trajectory from the recording.
+        """`restore()` for callers that construct a session by hand (tests, tools)."""
+        self._restoring = True
+        self.restore()
 
-        Records covered by the checkpoint only restore counters and the trajectory; the
-        estimator runs on the records after it.
-        """
+    def _damage_text(self) -> str:
+        d = self._damage
+        parts = []
+        if d.regions:
+            parts.append(
+                f"{d.records_lost} records / {d.bytes_lost} bytes lost in {d.regions} place(s)"
+            )
+        parts.extend(d.notes)
+        return "; ".join(parts)
+
+    def _replay(self) -> None:
+        """Rebuild estimator, grid, counters and trajectory (no lock: the session refuses
+        everything else while `_restoring`). Records covered by the checkpoint only restore
+        the trajectory; the estimator runs on the records after it."""
+        mapper = self._new_mapper()
+        segments = self._store.segments()
+        header: ckpt.CheckpointHeader | None = None
+        # Every checkpoint is checked (two files), so that a damaged fallback is reported too.
+        for candidate, state in list(self._checkpoints()):
+            if header is not None:
+                break
+            if not segments or candidate.segment > segments[-1].index:
+                self._note_checkpoint_rejected(
+                    f"segment {candidate.segment}: ahead of the recording"
+                )
+                continue
+            try:
+                mapper.restore(state)
+            except Exception as err:  # written by another version, say: replay instead
+                self._note_checkpoint_rejected(
+                    f"segment {candidate.segment}: does not restore: {err}"
+                )
+                mapper = self._new_mapper()
+                continue
+            header = candidate
+        start = header.segment if header is not None else 0
+        pruned_uncovered = [s for s in segments if s.pruned and s.index >= start]
+        if pruned_uncovered:
+            self._add_note(
+                "no valid checkpoint covers the pruned segment(s) from "
+                f"{pruned_uncovered[0].index}: the map holds only the scans still recorded"
+            )
+        if header is not None:
+            self.map_revision = header.map_revision
+        self._ckpt_segment = start
+        indices = [s.index for s in segments]
+        missing = sorted(set(range(indices[-1] + 1)) - set(indices)) if indices else []
+        if missing:
+            self._add_note(f"recording segment(s) {missing[:5]} missing")
+        total = RecordingReport()
+        last: tuple[Segment, RecordingReport] | None = None
         pending: Pose | None = None  # recomputed pose of the last scan, until its record comes
-        mismatches = 0
-        undecodable = 0
-        with self.lock:
-            checkpoint = self._load_checkpoint()
-            skip = 0
-            if checkpoint is not None:
-                skip = self._restore(checkpoint)
-                if skip:
-                    self.map_revision = checkpoint.map_revision
-            for index, record in enumerate(self._store.records()):
-                self._records += 1
+        mismatches = undecodable = covered_scans = 0
+        for seg in segments:
+            report = RecordingReport()
+            covered = seg.index < start
+            for record in self._segment_records(seg, report):
+                if self._cancel.is_set():
+                    raise _CancelledError
                 kind = record.kind
                 try:
-                    if index < skip:
-                        if kind == "scan":
-                            self.scans_accepted += 1
-                        elif kind == "pose":
+                    if covered:
+                        if kind == "pose":
                             self._poses.append(decode_pose(record.payload))
+                        elif kind == "scan":
+                            covered_scans += 1
                         continue
+                    self._records_tail += 1
                     if kind == "scan":
                         if pending is not None:
                             self._poses.append(pending)
@@ -335,18 +557,46 @@ class MappingSession:
                         undecodable += 1
                 except DecodeError:
                     undecodable += 1
-            tail_repaired = False
-            if pending is not None:
-                # Crash between a scan's record and its pose's: the pose is recomputed and,
-                # if the session goes on, recorded now.
-                self._poses.append(pending)
-                tail_repaired = True
-            if self.state == "active":
-                self._store.open_for_append()
-                if tail_repaired and pending is not None:
-                    self._store.append(encode_pose(pending))
-                    self._records += 1
-            self._checkpoint_scans = checkpoint.scans_accepted if checkpoint is not None else 0
+            total.merge(report)
+            last = (seg, report)
+        if header is not None:
+            covered_poses = sum(1 for p in self._poses if p.seq < header.poses)
+            if covered_poses < header.poses:
+                self._add_note(
+                    f"{header.poses - covered_poses} of the {header.poses} poses before the "
+                    "checkpoint are missing from the recording"
+                )
+            self.scans_accepted += header.scans_accepted
+            if covered_scans and covered_scans != header.scans_accepted:
+                log.info(
+                    "session %s: %d scans in the covered segments, the checkpoint says %d",
+                    self.id,
+                    covered_scans,
+                    header.scans_accepted,
+                )
+        if total.damage:
+            self._damage = replace(
+                self._damage,
+                records_lost=self._damage.records_lost + total.records_lost,
+                bytes_lost=self._damage.bytes_lost + total.bytes_lost,
+                regions=self._damage.regions + len(total.damage),
+            )
+        tail_repaired = False
+        if pending is not None:
+            # Crash between a scan's record and its pose's: the pose is recomputed and,
+            # if the session goes on, recorded now.
+            self._poses.append(pending)
+            tail_repaired = True
+        self._poses.sort(key=lambda p: p.seq)  # only a damaged recording can disorder them
+        if self.state == "active":
+            last_report = (
+                last[1] if last is not None and last[0].index == self._store.segment else None
+            )
+            self._store.open_for_append(last_report)
+            if tail_repaired and pending is not None:
+                self._store.append(encode_pose(pending))
+                self._records_tail += 1
+        self._checkpoint_scans = header.scans_accepted if header is not None else 0
         if mismatches or undecodable:
             log.warning(
                 "session %s: replay found %d pose mismatches and %d unreadable records",
@@ -354,53 +604,111 @@ class MappingSession:
                 mismatches,
                 undecodable,
             )
-        log.info(
-            "session %s (robot %s, %s): restored %d scans, %d poses",
-            self.id,
-            self.robot_id,
-            self.state,
-            self.scans_accepted,
-            len(self._poses),
-        )
+
+    def _segment_records(self, seg: Segment, report: RecordingReport) -> Iterator[RawRecord]:
+        """The segment's intact records; a file that is not a recording at all (its header is
+        damaged) counts as damage in full, and appends go to a fresh segment after it."""
+        try:
+            yield from self._store.records(seg, report)
+        except StoreError as err:
+            size = seg.path.stat().st_size if seg.path.exists() else 0
+            report.damage.append(Damage(0, size, 1, "header"))
+            self._add_note(f"{seg.path.name} unreadable ({err.reason}); its records are skipped")
+            if seg.index == self._store.segment:
+                self._store.segment += 1  # never append after a damaged header
+
+    def _add_note(self, note: str) -> None:
+        log.warning("session %s: %s", self.id, note)
+        self._damage = replace(self._damage, notes=(*self._damage.notes, note))
+
+    def cancel_restore(self) -> None:
+        self._cancel.set()
 
     # -- control --------------------------------------------------------------------------
 
     def stop(self) -> None:
         with self.lock:
+            self._ready()
             if self.state == "active":
                 self._checkpoint_if_behind()
                 self._store.close_writer()
                 self._store.set_state("stopped")
 
+    def mark_stopped(self) -> None:
+        """Stop a session that is not restored yet (a second active session of its robot)."""
+        with self.lock:
+            self._store.set_state("stopped")
+
     def reset(self) -> None:
         """Forget the map and the trajectory; the next scan starts a new map frame."""
         with self.lock:
+            mapper = self._ready()
             self._store.new_epoch()
             if self.state != "active":
                 self._store.close_writer()
-            self._mapper.reset()
+            mapper.reset()
             self._poses = []
             self.scans_accepted = 0
             self.map_revision += 1
-            self._records = 0
+            self._records_tail = 0
+            self._ckpt_segment = 0
             self._checkpoint_scans = 0
-            (self._store.directory / CHECKPOINT_FILE).unlink(missing_ok=True)
 
     def delete(self, trash_dir: Any) -> None:
+        self._cancel.set()
         with self.lock:
             self._deleted = True
-            self._mapper.close()
+            if self._mapper is not None:
+                self._mapper.close()
             self._store.delete(trash_dir)
 
     def sync(self) -> None:
         self._store.sync()
 
-    def close(self) -> None:
+    def close_if_idle(self, idle_s: float = IDLE_CLOSE_S) -> bool:
+        """Close the recording of a session whose robot has been quiet for `idle_s` (it is
+        reopened by the next scan). Never waits for a busy session."""
+        if not self.lock.acquire(blocking=False):
+            return False
+        try:
+            if self._store.writer_open and self._store.idle_for_s() >= idle_s:
+                self._store.close_writer()
+                return True
+            return False
+        finally:
+            self.lock.release()
+
+    @property
+    def writer_open(self) -> bool:
+        return self._store.writer_open
+
+    def prune(self, older_than_s: float) -> int:
+        """Cut the scans out of recording segments that a checkpoint before the newest covers
+        (so a damaged newest checkpoint still has a replayable fallback). Bytes freed."""
         with self.lock:
-            if self.state == "active" and not self._deleted:
+            if self._restoring or self._broken or self._deleted:
+                return 0
+            kept = [segment for segment, _ in self._store.checkpoint_paths()[:CHECKPOINTS_KEPT]]
+            if len(kept) < CHECKPOINTS_KEPT:
+                return 0
+            below = min(kept)
+            segments = self._store.segments()
+            if not any(not s.pruned and s.index < below for s in segments):
+                return 0
+            # Both kept checkpoints must be intact: otherwise they are not a fallback.
+            valid = [h.segment for h, _ in self._checkpoints() if h.segment in kept]
+            if len(valid) < CHECKPOINTS_KEPT:
+                return 0
+            return self._store.prune(older_than_s, below)
+
+    def close(self) -> None:
+        self._cancel.set()
+        with self.lock:
+            if self.is_active and not self._restoring:
                 self._checkpoint_if_behind()
             self._store.close_writer()
-            self._mapper.close()
+            if self._mapper is not None:
+                self._mapper.close()
 
     def _checkpoint_if_behind(self) -> None:
         """A checkpoint at a clean stop or shutdown makes the next start instant (lock held)."""
@@ -411,38 +719,88 @@ class MappingSession:
 
     def info(self) -> SessionInfo:
         with self.lock:
+            restoring = self._restoring
             return SessionInfo(
                 id=self.id,
                 robot_id=self.robot_id,
                 state=self.state,
                 created_ns=self.created_ns,
-                scans_accepted=self.scans_accepted,
-                poses=len(self._poses),
+                scans_accepted=0 if restoring else self.scans_accepted,
+                poses=0 if restoring else len(self._poses),
                 resolution_m=self.resolution_m,
                 use_odometry=self.use_odometry,
-                last_pose=self._poses[-1] if self._poses else None,
+                last_pose=self._poses[-1] if self._poses and not restoring else None,
+                status=self.status,
+                damage=self._damage,
             )
 
     def recording_path(self) -> Path:
-        """The current map's recording (scans and poses); it may be read while it grows:
-        readers stop at the last complete record."""
+        """The segment of the current map's recording that grows (see `recording_paths`)."""
         with self.lock:
             return self._store.recording_path
+
+    def recording_paths(self) -> list[Path]:
+        """The current map's recording, segment by segment (scans and poses; a pruned segment
+        has its poses only); the last may be read while it grows: readers stop at the last
+        complete record."""
+        with self.lock:
+            return [seg.path for seg in self._store.segments()]
 
     @property
     def last_pose(self) -> Pose | None:
         with self.lock:
+            if self._restoring:
+                return None
             return self._poses[-1] if self._poses else None
 
     def trajectory(self) -> list[Pose]:
         with self.lock:
+            self._ready_for_reads()
             return list(self._poses)
+
+    def trajectory_page(
+        self, since_seq: int = 0, limit: int | None = None, every: int = 1
+    ) -> tuple[list[Pose], int | None, int]:
+        """Poses with `sequence >= since_seq` whose sequence is a multiple of `every`, at most
+        `limit`; with the sequence to ask for next (None at the end) and the total count."""
+        with self.lock:
+            self._ready_for_reads()
+            poses = self._poses
+            total = len(poses)
+            start = bisect.bisect_left(poses, since_seq, key=lambda p: p.seq)
+            out: list[Pose] = []
+            index = start
+            if every > 1:
+                # Jump from multiple to multiple (sequence == index unless records were lost).
+                while index < total and (limit is None or len(out) < limit):
+                    pose = poses[index]
+                    if pose.seq % every == 0:
+                        out.append(pose)
+                        index += 1
+                        target = pose.seq + every
+                        index = bisect.bisect_left(poses, target, lo=index, key=lambda p: p.seq)
+                    else:
+                        target = pose.seq + (every - pose.seq % every)
+                        index = bisect.bisect_left(poses, target, lo=index, key=lambda p: p.seq)
+            else:
+                stop = total if limit is None else min(total, start + limit)
+                out = poses[start:stop]
+                index = stop
+            next_seq = poses[index].seq if index < total else None
+            return out, next_seq, total
+
+    def _ready_for_reads(self) -> None:
+        if self._restoring:
+            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
 
     def _image(self) -> Any:
         """The grid snapshot, cached per map revision (lock held): the live page polls the
         map several times a second while it only changes at keyframes."""
+        mapper = self._mapper
+        if self._restoring or mapper is None:
+            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
         if self._image_cache is None or self._image_cache[1] != self.map_revision:
-            self._image_cache = (self._mapper.snapshot(), self.map_revision)
+            self._image_cache = (mapper.snapshot(), self.map_revision)
         return self._image_cache[0]
 
     def map_image(self) -> MapSnapshot:
@@ -468,6 +826,31 @@ class MappingSession:
         return MapSnapshot(image=image, trajectory_xy_m=xy, last_pose=last, revision=revision)
 
 
+def _has_records(directory: Path) -> bool:
+    """True if a recording segment in `directory` holds more than its header."""
+    return any(
+        parse_segment(p.name) is not None and p.stat().st_size > len(RECORDING_MAGIC)
+        for p in directory.iterdir()
+    )
+
+
+def _robot_id_from_recording(directory: Path) -> str | None:
+    """The robot id of the first readable scan in any recording segment of `directory`."""
+    for path in sorted(directory.iterdir()):
+        if parse_segment(path.name) is None:
+            continue
+        try:
+            for record in iter_raw_records(path):
+                if record_kind(record.payload) == "scan":
+                    robot_id = decode_scan(
+                        record.payload, max_payload_bytes=MAX_RECORD_BYTES
+                    ).robot_id
+                    return robot_id if ROBOT_ID_PATTERN.fullmatch(robot_id) else None
+        except Exception:  # a placeholder's name is best effort
+            continue
+    return None
+
+
 def _same_pose(a: Pose, b: Pose) -> bool:
     return (
         a.seq == b.seq
@@ -489,6 +872,7 @@ class SessionManager:
         engine: Engine | None = None,
         make_mapper: MapperFactory | None = None,
         render_map_files: Callable[[MapSnapshot], dict[str, bytes]] | None = None,
+        max_open_sessions: int | None = None,
     ) -> None:
         self._data = data
         self._maps = maps
@@ -498,11 +882,16 @@ class SessionManager:
         self._lock = threading.Lock()
         self._sessions: dict[str, MappingSession] = {}
         self._active: dict[str, str] = {}  # robot_id -> session id
+        self._restore_thread: threading.Thread | None = None
+        self._restored = threading.Event()
+        self._restored.set()
+        self.max_open_sessions = max_open_sessions
 
     def load_all(self) -> None:
-        """Restore every session of the data directory (replaying its recording)."""
+        """Register every session of the data directory, in status `restoring` (fast: reads
+        only `session.json`); `restore_all` then replays them."""
         for directory in self._data.session_dirs():
-            if not (directory / "session.json").exists():
+            if not (directory / "session.json").exists() and not _has_records(directory):
                 # Interrupted creation: the client never got an answer for it.
                 log.warning("removing incomplete session directory %s", directory.name)
                 self._data.trash_dir.mkdir(exist_ok=True)
@@ -510,14 +899,14 @@ class SessionManager:
                 continue
             try:
                 store = SessionStore.load(directory, fsync_each=self._fsync_each)
-                session = MappingSession(store, self._make_mapper)
-                session.replay()
+                session = MappingSession(store, self._make_mapper, restoring=True)
             except StoreError as err:
-                log.error("session %s not restored (files kept): %s", directory.name, err)
-                continue
+                # Never silently gone: listed as `damaged`, files left for fsck.
+                log.error("session %s cannot be restored (files kept): %s", directory.name, err)
+                session = MappingSession.damaged(directory, err.reason, self._make_mapper)
             with self._lock:
                 self._sessions[session.id] = session
-                if session.state == "active":
+                if session.state == "active" and session.status != "damaged":
                     previous = self._active.get(session.robot_id)
                     if previous is not None:
                         log.warning(
@@ -525,14 +914,58 @@ class SessionManager:
                             session.robot_id,
                             previous,
                         )
-                        self._sessions[previous].stop()
+                        self._sessions[previous].mark_stopped()
                     self._active[session.robot_id] = session.id
+
+    def restore_all(self, *, background: bool = True) -> None:
+        """Replay every restoring session, oldest first (in a thread when `background`)."""
+        restoring = [s for s in self.list() if s.status == "restoring"]
+        self._restored.clear()
+
+        def run() -> None:
+            t0 = time.monotonic()
+            try:
+                for session in restoring:
+                    try:
+                        session.restore()
+                    except Exception:  # one broken session must not keep the others waiting
+                        log.exception("session %s: restore failed", session.id)
+                        session._broken = True
+                        session._restoring = False
+                        session._damage = replace(
+                            session.damage, notes=(*session.damage.notes, "restore failed")
+                        )
+                log.info(
+                    "restored %d sessions from %s in %.2f s",
+                    len(restoring),
+                    self._data.root,
+                    time.monotonic() - t0,
+                )
+            finally:
+                self._restored.set()
+
+        if background:
+            self._restore_thread = threading.Thread(target=run, name="restore", daemon=True)
+            self._restore_thread.start()
+        else:
+            run()
+
+    def wait_restored(self, timeout_s: float | None = None) -> bool:
+        return self._restored.wait(timeout_s)
+
+    @property
+    def restoring(self) -> bool:
+        return not self._restored.is_set()
 
     def create(self, robot_id: str, resolution_m: float, use_odometry: bool) -> MappingSession:
         with self._lock:
             current = self._active.get(robot_id)
             if current is not None:
                 raise ConflictError(f"robot {robot_id!r} already has an active session {current}")
+            if self.max_open_sessions is not None and len(self._active) >= self.max_open_sessions:
+                raise UnavailableError(
+                    f"at the limit of {self.max_open_sessions} active sessions; stop one first"
+                )
             meta = SessionMeta(
                 id=new_session_id(),
                 robot_id=robot_id,
@@ -546,7 +979,8 @@ class SessionManager:
                     self._data.sessions_dir, meta, fsync_each=self._fsync_each
                 )
             except OSError as err:
-                raise StoreError(f"cannot create session files: {err}") from err
+                # No paths in the answer: the reason only (it goes to clients).
+                raise _create_error(err) from err
             session = MappingSession(store, self._make_mapper)
             self._sessions[session.id] = session
             self._active[robot_id] = session.id
@@ -588,14 +1022,26 @@ class SessionManager:
         log.info("session %s reset", session.id)
         return session
 
-    def delete(self, session_id: str) -> None:
+    def delete(self, session_id: str, *, keep_maps: bool = False) -> Sequence[SavedMapMeta]:
+        """Delete a session and its recording, and its saved maps unless `keep_maps`;
+        returns the saved map versions deleted."""
         session = self.get(session_id)
+        if session.status == "restoring":
+            raise UnavailableError(f"session {session.id} is restoring; retry in a few seconds")
         with self._lock:
             self._sessions.pop(session.id, None)
             if self._active.get(session.robot_id) == session.id:
                 del self._active[session.robot_id]
         session.delete(self._data.trash_dir)
-        log.info("session %s deleted", session.id)
+        maps: Sequence[SavedMapMeta] = ()
+        if not keep_maps:
+            maps = self._maps.delete(session.id, None, self._data.trash_dir)
+        log.info(
+            "session %s deleted%s",
+            session.id,
+            f" with {len(maps)} saved map version(s)" if maps else "",
+        )
+        return maps
 
     def save(self, session_id: str) -> SavedMapMeta:
         if self._render is None:
@@ -620,9 +1066,55 @@ class SessionManager:
             except OSError as err:
                 log.error("fsync of session %s failed: %s", session.id, err)
 
+    def close_idle(self, idle_s: float = IDLE_CLOSE_S) -> int:
+        """Close the recordings of quiet sessions; returns how many were closed."""
+        closed = 0
+        for session in self.list():
+            try:
+                closed += session.close_if_idle(idle_s)
+            except OSError as err:
+                log.error("closing the recording of session %s failed: %s", session.id, err)
+        return closed
+
+    def prune(self, older_than_s: float) -> int:
+        freed = 0
+        for session in self.list():
+            try:
+                freed += session.prune(older_than_s)
+            except (OSError, StoreError) as err:
+                log.error("pruning session %s failed: %s", session.id, err)
+        return freed
+
     def close(self) -> None:
+        for session in self.list():
+            session.cancel_restore()
+        if self._restore_thread is not None:
+            self._restore_thread.join(timeout=30)
         for session in self.list():
             try:
                 session.close()
             except OSError as err:
                 log.error("closing session %s failed: %s", session.id, err)
+
+
+def _create_error(err: OSError) -> Exception:
+    if err.errno in (errno.EMFILE, errno.ENFILE):
+        return UnavailableError(
+            "cannot open more files (descriptor limit reached): stop idle sessions or raise "
+            "the service's descriptor limit, then retry"
+        )
+    if err.errno == errno.ENOSPC:
+        return UnavailableError("no space left on the service's disk")
+    return StoreError(f"cannot create session files: {err.strerror or type(err).__name__}")
+
+
+__all__ = [
+    "DamageSummary",
+    "Ingested",
+    "MapSnapshot",
+    "MappingSession",
+    "SessionInfo",
+    "SessionManager",
+    "SessionStatus",
+    "read_meta",
+]

@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, SecretStr, ValidationError
 from clients.fleet import InvalidInstanceIdError, check_instance_id
 from clients.keyexpr import DEFAULT_PREFIX, InvalidPrefixError, check_prefix, scan_wildcard
 from service.app.errors import SettingsError
+from service.app.limits import default_max_robots
 
 log = logging.getLogger(__name__)
 
@@ -60,14 +61,23 @@ class StorageSettings(_Frozen):
         ge=0.0,
         description="0 = fsync every append; otherwise group commit on this period",
     )
+    retain_recordings_days: float | None = Field(
+        default=None,
+        ge=0.0,
+        description="prune the scans of recording segments older than this that checkpoints "
+        "cover (poses stay); None = keep everything",
+    )
 
 
 class IngestSettings(_Frozen):
     # 32 scans = 0.8 s of a 40 Hz sensor: absorbs bursts without letting an overloaded worker
     # fall seconds behind real time (the oldest scans are dropped, and counted, instead).
     queue_depth: int = Field(default=32, ge=1, description="scans buffered per robot (drop oldest)")
+    # Default: what fits under the descriptor limit (service/app/limits.py), at most 1024.
     max_robots: int = Field(
-        default=1024, ge=1, description="robots tracked at once (queues, workers)"
+        default_factory=default_max_robots,
+        ge=1,
+        description="robots tracked at once (queues, workers) and active sessions",
     )
     max_payload_bytes: int = Field(default=1 << 20, ge=1024)
     # Processes that run the estimators and grids (0: in the service's process). One process
@@ -294,6 +304,11 @@ def build_settings(
         "storage": {
             "data_dir": args.data_dir,
             **from_env(fsync_interval_s="FSYNC_INTERVAL_S"),
+            **(
+                {"retain_recordings_days": args.retain_recordings}
+                if getattr(args, "retain_recordings", None) is not None
+                else from_env(retain_recordings_days="RETAIN_RECORDINGS_DAYS")
+            ),
         },
         "ingest": from_env(
             queue_depth="QUEUE_DEPTH",

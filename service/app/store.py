@@ -4,9 +4,13 @@ Layout::
 
     <data>/service.lock                      flock: one service per data directory
     <data>/sessions/<session_id>/session.json metadata (atomically replaced)
-    <data>/sessions/<session_id>/epoch-NNNNNN.mrec   accepted scans and their poses
+    <data>/sessions/<session_id>/epoch-NNNNNN.mrec   accepted scans and their poses (segment 0)
     <data>/maps/<map_id>/<version>/map.png|map.pgm|map.yaml|map.json
     <data>/trash/                            directories being deleted
+
+    <data>/sessions/<session_id>/epoch-NNNNNN.SSSSSS.mrec   its later segments (one per checkpoint)
+    <data>/sessions/<session_id>/epoch-NNNNNN.SSSSSS.poses.mrec  a pruned segment: poses only
+    <data>/sessions/<session_id>/checkpoint-NNNNNN.SSSSSS.mck    estimator + grid before segment S
 
 The recording of a session (clients.recording format) is the source of truth: every accepted
 scan and every pose is appended to it, and written to the kernel, before it is counted. A reset
@@ -24,13 +28,20 @@ import os
 import re
 import shutil
 import threading
+import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any, Final, Literal
 
-from clients.recording import RawRecord, RecordingError, RecordingWriter, iter_raw_records
+from clients.recording import (
+    RawRecord,
+    RecordingError,
+    RecordingReport,
+    RecordingWriter,
+    iter_raw_records,
+)
 from clients.wire import ROBOT_ID_PATTERN, SESSION_ID_PATTERN
 from service.app.errors import NotFoundError, StoreError
 
@@ -38,7 +49,9 @@ log = logging.getLogger(__name__)
 
 META_FORMAT: Final = 1
 MAP_FILES: Final = ("map.png", "map.pgm", "map.yaml")
-_EPOCH_FILE = re.compile(r"^epoch-(\d{6})\.mrec$")
+_SEGMENT_FILE = re.compile(r"^epoch-(\d{6})(?:\.(\d{6}))?(\.poses)?\.mrec$")
+_CHECKPOINT_FILE = re.compile(r"^checkpoint-(\d{6})\.(\d{6})\.mck$")
+LEGACY_CHECKPOINT: Final = "checkpoint.pickle"
 
 SessionState = Literal["active", "stopped"]
 
@@ -108,8 +121,48 @@ class SessionMeta:
         return meta
 
 
+@dataclass(frozen=True, slots=True)
+class Segment:
+    """One file of a session's recording: segment `index` of the current epoch."""
+
+    index: int
+    path: Path
+    pruned: bool  # only its pose records are left (retention); its scans are covered
+
+
+def segment_name(epoch: int, index: int, *, pruned: bool = False) -> str:
+    if pruned:
+        return f"epoch-{epoch:06d}.{index:06d}.poses.mrec"
+    if index == 0:
+        return f"epoch-{epoch:06d}.mrec"  # the name before segments existed: old data reads on
+    return f"epoch-{epoch:06d}.{index:06d}.mrec"
+
+
+def checkpoint_name(epoch: int, segment: int) -> str:
+    return f"checkpoint-{epoch:06d}.{segment:06d}.mck"
+
+
+def parse_segment(name: str) -> tuple[int, int, bool] | None:
+    """(epoch, index, pruned) of a segment file name, else None."""
+    m = _SEGMENT_FILE.fullmatch(name)
+    if m is None:
+        return None
+    return int(m.group(1)), int(m.group(2) or 0), m.group(3) is not None
+
+
+def parse_checkpoint(name: str) -> tuple[int, int] | None:
+    m = _CHECKPOINT_FILE.fullmatch(name)
+    return (int(m.group(1)), int(m.group(2))) if m is not None else None
+
+
 class SessionStore:
-    """The on-disk half of one session. Not thread-safe except `sync()`; callers serialise."""
+    """The on-disk half of one session. Not thread-safe except `sync()`; callers serialise.
+
+    The recording of the current epoch is a list of segment files; the writer appends to the
+    last one and `roll()` starts the next (at each checkpoint). The writer is opened on the
+    first append and closed when the session is idle (`close_if_idle`): descriptors stay
+    bounded by the robots that are actually sending.
+    """
 
     def __init__(self, directory: Path, meta: SessionMeta, *, fsync_each: bool) -> None:
         self.directory = directory
@@ -118,63 +171,126 @@ class SessionStore:
         self._io_lock = threading.Lock()  # guards the writer's lifecycle against sync()
         self._dirty = False
         self._writer: RecordingWriter | None = None
+        self.segment = 0  # index of the segment appends go to
+        self._known_end: tuple[int, int] | None = None  # (segment, byte length) we wrote
+        self._last_append = time.monotonic()
 
     # -- lifecycle -----------------------------------------------------------------------
 
     @classmethod
     def create(cls, sessions_dir: Path, meta: SessionMeta, *, fsync_each: bool) -> SessionStore:
+        """Make the session's files; on any failure nothing is left behind."""
         directory = sessions_dir / check_id(meta.id, "session")
         directory.mkdir(parents=True)
-        store = cls(directory, meta, fsync_each=fsync_each)
-        store._open_writer()
-        write_atomic(directory / "session.json", meta.to_json())
-        _fsync_dir(sessions_dir)
+        try:
+            store = cls(directory, meta, fsync_each=fsync_each)
+            store._open_writer()
+            store._close_writer_locked()  # reopened on the first scan
+            write_atomic(directory / "session.json", meta.to_json())
+            _fsync_dir(sessions_dir)
+        except BaseException:
+            shutil.rmtree(directory, ignore_errors=True)
+            raise
         return store
 
     @classmethod
     def load(cls, directory: Path, *, fsync_each: bool) -> SessionStore:
-        try:
-            meta = SessionMeta.from_json((directory / "session.json").read_bytes())
-        except (OSError, ValueError, KeyError, TypeError) as err:
-            raise StoreError(f"{directory}: unreadable session.json: {err}") from err
-        if meta.id != directory.name:
-            raise StoreError(f"{directory}: session.json names session {meta.id!r}")
+        meta = read_meta(directory)
         store = cls(directory, meta, fsync_each=fsync_each)
-        store._remove_stale_epochs()
+        store._remove_stale_files()
+        segments = store.segments()
+        store.segment = segments[-1].index if segments else 0
+        if segments and segments[-1].pruned:
+            store.segment += 1  # never append to a pruned segment
         return store
+
+    def segment_path(self, index: int, *, pruned: bool = False) -> Path:
+        return self.directory / segment_name(self.meta.epoch, index, pruned=pruned)
 
     @property
     def recording_path(self) -> Path:
-        return self.directory / f"epoch-{self.meta.epoch:06d}.mrec"
+        """The segment appends go to."""
+        return self.segment_path(self.segment)
 
-    def _open_writer(self) -> None:
-        # The writer truncates a torn tail left by a crash before appending anything.
-        self._writer = RecordingWriter(
-            self.recording_path, fsync_every=1 if self._fsync_each else 0
-        )
+    def segments(self) -> list[Segment]:
+        """The current epoch's segments in order (a pruned copy stands for a pruned segment)."""
+        out = []
+        for path in segment_files(self.directory, self.meta.epoch):
+            parsed = parse_segment(path.name)
+            assert parsed is not None
+            out.append(Segment(parsed[1], path, parsed[2]))
+        return out
 
-    def _remove_stale_epochs(self) -> None:
-        """Epoch files other than the committed one are leftovers of an interrupted reset."""
+    def checkpoint_paths(self) -> list[tuple[int, Path]]:
+        """(segment, path) of this epoch's checkpoints, newest first."""
+        out = []
         for path in self.directory.iterdir():
-            m = _EPOCH_FILE.fullmatch(path.name)
-            if m is not None and int(m.group(1)) != self.meta.epoch:
+            parsed = parse_checkpoint(path.name)
+            if parsed is not None and parsed[0] == self.meta.epoch:
+                out.append((parsed[1], path))
+        return sorted(out, reverse=True)
+
+    def checkpoint_path(self, segment: int) -> Path:
+        return self.directory / checkpoint_name(self.meta.epoch, segment)
+
+    def _open_writer(self, report: RecordingReport | None = None) -> None:
+        # The writer truncates a torn tail left by a crash before appending anything.
+        path = self.recording_path
+        if report is None and self._known_end is not None and self._known_end[0] == self.segment:
+            report = RecordingReport(valid_end=self._known_end[1], size_bytes=self._known_end[1])
+        self._writer = RecordingWriter(
+            path, fsync_every=1 if self._fsync_each else 0, report=report
+        )
+        self._known_end = (self.segment, self._writer.end_offset)
+
+    def _close_writer_locked(self, *, fsync: bool = False) -> None:
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            try:
+                if self._dirty or fsync:
+                    writer.sync()
+            finally:
+                writer.close()
+                self._known_end = (self.segment, writer.end_offset)
+        self._dirty = False
+
+    def _remove_stale_files(self) -> None:
+        """Files of other epochs are leftovers of an interrupted reset; temp files of a crash."""
+        for path in self.directory.iterdir():
+            parsed = parse_segment(path.name)
+            ckpt = parse_checkpoint(path.name)
+            epoch = parsed[0] if parsed is not None else ckpt[0] if ckpt is not None else None
+            if epoch is not None and epoch != self.meta.epoch:
                 log.info("%s: removing stale %s", self.directory.name, path.name)
                 path.unlink()
+            elif path.name == LEGACY_CHECKPOINT:
+                # A pickle is code: never loaded. The recording rebuilds what it held.
+                log.warning(
+                    "%s: ignoring the old-format %s (a replay rebuilds it)",
+                    self.directory.name,
+                    LEGACY_CHECKPOINT,
+                )
+            elif path.name.startswith(".") and path.name.endswith(".tmp"):
+                path.unlink()
 
-    def records(self) -> Iterator[RawRecord]:
-        """Every complete record of the current epoch (a torn tail is ignored), streamed."""
-        if not self.recording_path.exists():
-            return
+    def records(
+        self, segment: Segment, report: RecordingReport | None = None
+    ) -> Iterator[RawRecord]:
+        """Every intact record of one segment, streamed; damage is skipped into `report`."""
         try:
-            yield from iter_raw_records(self.recording_path)
+            yield from iter_raw_records(
+                segment.path, report if report is not None else RecordingReport()
+            )
         except RecordingError as err:
-            raise StoreError(str(err)) from err
+            raise StoreError(f"{segment.path.name}: {err}") from err
+        except FileNotFoundError:
+            return
 
-    def open_for_append(self) -> None:
-        """Reopen the recording after a replay (only active sessions append)."""
+    def open_for_append(self, report: RecordingReport | None = None) -> None:
+        """Open the writer after a replay; `report` of the last segment spares a re-read."""
         with self._io_lock:
             if self._writer is None:
-                self._open_writer()
+                self._open_writer(report)
 
     # -- appends ---------------------------------------------------------------------------
 
@@ -182,9 +298,16 @@ class SessionStore:
         """Append one wire message; it is in the kernel (survives kill -9) when this returns."""
         writer = self._writer
         if writer is None:
-            raise StoreError(f"session {self.meta.id} is not open for writing")
+            if self.meta.state != "active":
+                raise StoreError(f"session {self.meta.id} is not open for writing")
+            with self._io_lock:
+                if self._writer is None:
+                    self._open_writer()
+                writer = self._writer
+                assert writer is not None
         writer.append(payload)
         self._dirty = True
+        self._last_append = time.monotonic()
 
     def sync(self) -> None:
         """fsync the recording if anything was appended since the last sync (any thread)."""
@@ -200,32 +323,81 @@ class SessionStore:
         finally:
             os.close(fd)
 
+    def idle_for_s(self) -> float:
+        return time.monotonic() - self._last_append
+
+    @property
+    def writer_open(self) -> bool:
+        return self._writer is not None
+
     # -- state changes ---------------------------------------------------------------------
 
     def set_state(self, state: SessionState) -> None:
         self.meta = replace(self.meta, state=state)
         write_atomic(self.directory / "session.json", self.meta.to_json())
 
+    def roll(self) -> int:
+        """Close the current segment (fsynced) and start the next; returns its index."""
+        with self._io_lock:
+            self._close_writer_locked(fsync=True)  # a checkpoint must never outlive its records
+            self.segment += 1
+            self._known_end = None
+            try:
+                self._open_writer()
+            except BaseException:
+                self.segment -= 1
+                raise
+            self._dirty = False
+        _fsync_dir(self.directory)
+        return self.segment
+
     def new_epoch(self) -> None:
         """Start an empty recording (reset). The old epoch is deleted after the commit."""
-        old_path = self.recording_path
+        old = [seg.path for seg in self.segments()] + [p for _, p in self.checkpoint_paths()]
         with self._io_lock:
-            if self._writer is not None:
-                self._writer.close()
-                self._writer = None
+            self._close_writer_locked()
             self.meta = replace(self.meta, epoch=self.meta.epoch + 1)
+            self.segment = 0
+            self._known_end = None
             self._open_writer()
             self._dirty = False
         write_atomic(self.directory / "session.json", self.meta.to_json())
-        old_path.unlink(missing_ok=True)
+        for path in old:
+            path.unlink(missing_ok=True)
 
     def close_writer(self) -> None:
         with self._io_lock:
-            if self._writer is not None:
-                self._writer.sync()
-                self._writer.close()
-                self._writer = None
-            self._dirty = False
+            self._close_writer_locked()
+
+    def prune(self, older_than_s: float, below_segment: int) -> int:
+        """Cut the scans out of closed segments below `below_segment` (covered by a checkpoint
+        that is not the newest) whose last write is older than `older_than_s`; their poses
+        stay (the trajectory). Returns the bytes freed."""
+        freed = 0
+        now = time.time()
+        for seg in self.segments():
+            if seg.pruned or seg.index >= min(below_segment, self.segment):
+                continue
+            try:
+                stat = seg.path.stat()
+            except FileNotFoundError:
+                continue
+            if now - stat.st_mtime < older_than_s:
+                continue
+            target = self.segment_path(seg.index, pruned=True)
+            tmp = target.with_name(f".{target.name}.{uuid.uuid4().hex[:8]}.tmp")
+            with RecordingWriter(tmp, fsync_every=0) as writer:
+                for record in self.records(seg):
+                    if record.kind == "pose":
+                        writer.append(record.payload)
+                writer.sync()
+            os.replace(tmp, target)
+            _fsync_dir(self.directory)
+            seg.path.unlink()
+            _fsync_dir(self.directory)
+            freed += stat.st_size - target.stat().st_size
+            log.info("%s: pruned the scans of %s", self.directory.name, seg.path.name)
+        return freed
 
     def delete(self, trash_dir: Path) -> None:
         self.close_writer()
@@ -234,6 +406,31 @@ class SessionStore:
         os.replace(self.directory, target)  # atomic: a restart never sees half a session
         _fsync_dir(self.directory.parent)
         shutil.rmtree(target, ignore_errors=True)
+
+
+def segment_files(directory: Path, epoch: int) -> list[Path]:
+    """The recording of `epoch` in `directory`, segment by segment, in order (a pruned copy
+    stands for a pruned segment)."""
+    found: dict[int, tuple[bool, Path]] = {}
+    for path in directory.iterdir():
+        parsed = parse_segment(path.name)
+        if parsed is None or parsed[0] != epoch:
+            continue
+        _, index, pruned = parsed
+        if index not in found or found[index][0]:
+            found[index] = (pruned, path)
+    return [found[k][1] for k in sorted(found)]
+
+
+def read_meta(directory: Path) -> SessionMeta:
+    try:
+        meta = SessionMeta.from_json((directory / "session.json").read_bytes())
+    except (OSError, ValueError, KeyError, TypeError, StoreError) as err:
+        reason = err.reason if isinstance(err, StoreError) else f"{type(err).__name__}: {err}"
+        raise StoreError(f"unreadable session.json ({reason})") from err
+    if meta.id != directory.name:
+        raise StoreError(f"session.json names session {meta.id!r}")
+    return meta
 
 
 @dataclass(frozen=True, slots=True)
@@ -307,6 +504,32 @@ class MapStore:
             _fsync_dir(final.parent)
             self._maps[(map_id, version)] = meta
             return meta
+
+    def delete(self, map_id: str, version: int | None, trash_dir: Path) -> Sequence[SavedMapMeta]:
+        """Delete one version of a saved map (or every version with `version=None`)."""
+        check_id(map_id, "map")
+        with self._lock:
+            gone = [
+                m
+                for (mid, v), m in self._maps.items()
+                if mid == map_id and (version is None or v == version)
+            ]
+            if version is not None and not gone:
+                raise NotFoundError(f"no saved map {map_id!r} version {version}")
+            trash_dir.mkdir(parents=True, exist_ok=True)
+            for meta in gone:
+                source = self._dir / map_id / str(meta.version)
+                target = trash_dir / f"map-{map_id}-{meta.version}-{uuid.uuid4().hex[:8]}"
+                os.replace(source, target)  # atomic: a restart sees it or not
+                del self._maps[(map_id, meta.version)]
+                shutil.rmtree(target, ignore_errors=True)
+            if gone:
+                _fsync_dir(self._dir / map_id)
+                if not any(mid == map_id for mid, _ in self._maps):
+                    with contextlib.suppress(OSError):
+                        (self._dir / map_id).rmdir()
+                        _fsync_dir(self._dir)
+        return sorted(gone, key=lambda m: m.version)
 
     def file(self, map_id: str, version: int, name: str) -> Path:
         if name not in MAP_FILES:

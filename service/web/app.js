@@ -1,6 +1,6 @@
 // Live map page: session picker, controls, the map with trajectory and robot, pose panel.
 // Plain browser JavaScript, no dependencies, no build step. Talks only to this origin:
-//   GET  /sessions, /sessions/{id}, /sessions/{id}/trajectory, /sessions/{id}/map.yaml,
+//   GET  /sessions, /sessions/{id}, /sessions/{id}/trajectory (paged), /sessions/{id}/map.yaml,
 //        /sessions/{id}/map.png?trajectory=false&robot=false   (we draw those ourselves)
 //   SSE  /sessions/{id}/pose/stream   (event: pose, data: PoseView JSON), read with fetch()
 //   POST /sessions, /sessions/{id}/stop|reset|save
@@ -407,24 +407,41 @@
     }
   }
 
+  // The trajectory comes in pages (the server's default is 1,000 poses); a long one is
+  // decimated (`every`) so that the page keeps at most about MAX_TRAJ_POINTS points.
+  const TRAJ_PAGE = 5000;
+
+  async function trajectoryPage(id, since, every) {
+    const q = `?since_seq=${since}&limit=${TRAJ_PAGE}&every=${every}`;
+    const r = await api("GET", sessionPath(id, "trajectory") + q);
+    return r.json();
+  }
+
   async function loadTrajectory(id) {
     try {
-      const r = await api("GET", sessionPath(id, "trajectory"));
-      const body = await r.json();
-      if (state.sessionId !== id) return;
+      let body = await trajectoryPage(id, 0, 1);
+      const total = body.total || 0;
+      const every = Math.max(1, Math.ceil(total / MAX_TRAJ_POINTS));
+      if (every > 1) body = await trajectoryPage(id, 0, every);
       const pts = [];
       let last = -1;
-      for (const p of body.poses || []) {
-        pushPoint(pts, p.x, p.y, p.sequence);
-        last = Math.max(last, p.sequence);
+      for (;;) {
+        if (state.sessionId !== id) return;
+        for (const p of body.poses || []) {
+          pushPoint(pts, p.x, p.y, p.sequence);
+          last = Math.max(last, p.sequence);
+        }
+        if (body.next_seq === null || body.next_seq === undefined) break;
+        body = await trajectoryPage(id, body.next_seq, every);
       }
+      if (state.sessionId !== id) return;
       // Poses that arrived on the stream while the trajectory was loading go after it.
       for (const [x, y, seq] of state.traj) if (seq > last) pushPoint(pts, x, y, seq);
       state.traj = pts;
       state.lastSeq = Math.max(state.lastSeq, last);
       state.dirty = true;
     } catch (err) {
-      /* a fresh session has no trajectory yet; the stream fills it */
+      /* a fresh or restoring session has no trajectory yet; the stream fills it */
     }
   }
 

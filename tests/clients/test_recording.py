@@ -15,10 +15,12 @@ from clients.recording import (
     MAGIC,
     MAX_RECORD_BYTES,
     RecordingError,
+    RecordingReport,
     RecordingWriter,
     is_recording,
     iter_raw_records,
     read_messages,
+    scan_file,
     valid_length,
 )
 from clients.wire import OdometryPose, Pose, PoseFlag, Scan, encode_pose, encode_scan
@@ -156,41 +158,70 @@ def test_bad_crc_of_the_last_record_is_a_torn_tail(tmp_path: Path) -> None:
     assert list(read_messages(path)) == items[:-1]
 
 
-def test_corrupt_crc_before_the_last_record_raises(tmp_path: Path) -> None:
+def test_corrupt_crc_before_the_last_record_is_skipped_and_reported(tmp_path: Path) -> None:
+    """Issue 16: one damaged record used to lose the whole recording (RecordingError)."""
     path = tmp_path / "crc.mrec"
     items = messages(4)
     offsets = write(path, items)
     data = bytearray(path.read_bytes())
     data[offsets[1] + HEADER.size + 3] ^= 0x01  # one bit inside the second payload
     path.write_bytes(bytes(data))
-    reader = iter_raw_records(path)
-    assert next(reader).offset == offsets[0]  # records before the damage are still readable
-    with pytest.raises(RecordingError, match="CRC"):
-        next(reader)
-    with pytest.raises(RecordingError):
-        list(read_messages(path))
-    with pytest.raises(RecordingError):
-        RecordingWriter(path)  # never append to a damaged log
-    assert path.read_bytes() == bytes(data)
+    report = RecordingReport()
+    assert [r.offset for r in iter_raw_records(path, report)] == [offsets[0], *offsets[2:]]
+    assert list(read_messages(path)) == [items[0], *items[2:]]
+    assert report.records == 3
+    assert report.records_lost == 1
+    assert report.bytes_lost == offsets[2] - offsets[1]
+    assert [(d.offset, d.reason) for d in report.damage] == [(offsets[1], "crc")]
+    # Appending keeps the damage for fsck and goes on after the last intact record.
+    with RecordingWriter(path, report=report) as writer:
+        writer.append(encode(make_pose(9)))
+    assert list(read_messages(path)) == [items[0], *items[2:], make_pose(9)]
+    assert path.read_bytes()[: len(data)] == bytes(data)
 
 
-def test_zero_length_before_more_data_raises(tmp_path: Path) -> None:
+@pytest.mark.parametrize("value", [0, 7, MAX_RECORD_BYTES + 1, 0xFFFFFFFF])
+def test_damaged_length_is_resynchronised(tmp_path: Path, value: int) -> None:
     path = tmp_path / "len.mrec"
-    offsets = write(path, messages(3))
+    items = messages(5)
+    offsets = write(path, items)
     data = bytearray(path.read_bytes())
-    data[offsets[1] : offsets[1] + 4] = struct.pack("<I", 0)
+    data[offsets[1] : offsets[1] + 4] = struct.pack("<I", value)
     path.write_bytes(bytes(data))
-    with pytest.raises(RecordingError, match="corrupt"):
-        list(iter_raw_records(path))
+    report = scan_file(path)
+    assert list(read_messages(path)) == [items[0], *items[2:]]
+    assert report.records == 4
+    assert report.records_lost >= 1
+    assert report.damage[0].offset == offsets[1]
+    assert report.bytes_lost == offsets[2] - offsets[1]
+
+
+def test_damage_in_the_last_record_is_reported_not_torn(tmp_path: Path) -> None:
+    path = tmp_path / "last.mrec"
+    items = messages(3)
+    offsets = write(path, items)
+    data = bytearray(path.read_bytes())
+    data[offsets[2] + HEADER.size + 2] ^= 0x10
+    path.write_bytes(bytes(data))
+    report = scan_file(path)
+    assert (report.records, report.records_lost, report.torn_tail_bytes) == (2, 1, 0)
+    with RecordingWriter(path, report=report):
+        pass  # truncates the damaged record, after keeping a copy of it
+    assert path.stat().st_size == offsets[2]
+    (backup,) = tmp_path.glob("last.mrec.tail-*.damaged")
+    assert backup.read_bytes() == bytes(data[offsets[2] :])
 
 
 def test_length_past_the_end_of_the_file_is_a_torn_tail(tmp_path: Path) -> None:
     path = tmp_path / "len.mrec"
     offsets = write(path, messages(3))
     data = bytearray(path.read_bytes())
-    data[offsets[1] : offsets[1] + 4] = struct.pack("<I", MAX_RECORD_BYTES + 1)
+    data[offsets[2] : offsets[2] + 4] = struct.pack("<I", 1000)
     path.write_bytes(bytes(data))
-    assert [r.offset for r in iter_raw_records(path)] == offsets[:1]
+    report = scan_file(path)
+    assert [r.offset for r in iter_raw_records(path)] == offsets[:2]
+    assert report.torn_tail_bytes == len(data) - offsets[2]
+    assert not report.damaged
 
 
 @pytest.mark.parametrize(

@@ -40,13 +40,14 @@ MCAP_MEDIA_TYPE = "application/x-mcap"
     },
 )
 def read_recording_mcap(session: SessionDep) -> StreamingResponse:
-    path = session.recording_path()
+    paths = session.recording_paths()  # segments; none yet after a start or a reset
 
     def messages() -> Iterator[Scan | Pose]:
-        if not path.exists():  # no scan yet (or reset): an MCAP with the map only
-            return
         try:
-            yield from read_messages(path)
+            for path in paths:
+                yield from read_messages(path)
+        except FileNotFoundError:  # pruned or reset meanwhile: end the file here
+            log.warning("session %s: export stopped: a segment is gone", session.id)
         except (RecordingError, OSError) as err:  # headers are sent: end the file here
             log.error("session %s: export stopped: %s", session.id, err)
 

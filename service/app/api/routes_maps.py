@@ -4,10 +4,10 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Path
+from fastapi import APIRouter, Path, Response
 from fastapi.responses import FileResponse
 
-from service.app.api.deps import Read, Runtime
+from service.app.api.deps import Control, Read, Runtime
 from service.app.api.schemas import ID_PATTERN, SavedMap, SavedMapList, errors
 
 router = APIRouter(prefix="/maps", tags=["maps"], dependencies=Read)
@@ -71,3 +71,18 @@ def saved_pgm(map_id: MapId, version: Version, runtime: Runtime) -> FileResponse
 )
 def saved_yaml(map_id: MapId, version: Version, runtime: Runtime) -> FileResponse:
     return _file(runtime, map_id, version, "map.yaml", "application/yaml")
+
+
+@router.delete(
+    "/{map_id}/{version}",
+    status_code=204,
+    response_class=Response,
+    response_model=None,
+    dependencies=Control,
+    summary="Delete a saved map version",
+    description="Delete one saved version of a map (its PNG, PGM, YAML). Other versions stay.",
+    responses=errors(401, 404, 422),
+)
+def delete_saved_map(map_id: MapId, version: Version, runtime: Runtime) -> Response:
+    runtime.maps.delete(map_id, version, runtime.data.trash_dir)
+    return Response(status_code=204)

@@ -32,6 +32,9 @@ SessionId = Annotated[
     str, Path(pattern=ID_PATTERN, max_length=64, description="a session id from POST /sessions")
 ]
 NO_STORE = {"Cache-Control": "no-store"}
+# 1,000 poses is ~250 KB of JSON: 25 s of a 40 Hz robot per page.
+TRAJECTORY_PAGE = 1000
+TRAJECTORY_PAGE_MAX = 10_000
 
 
 def get_session(session_id: SessionId, sessions: Sessions) -> MappingSession:
@@ -49,8 +52,9 @@ SessionDep = Annotated[MappingSession, Depends(get_session)]
     summary="Start a mapping session",
     description="Start mapping `robot_id`: its scans are recorded and mapped from now on. "
     "One active session per robot (409 otherwise), on an instance whose robot patterns match "
-    "it and not while another instance maps it (409).",
-    responses=errors(400, 401, 403, 409, 413, 422),
+    "it and not while another instance maps it (409). 503 at the robot or descriptor limit "
+    "(nothing is created).",
+    responses=errors(400, 401, 403, 409, 413, 422, 503),
 )
 def create_session(body: SessionCreate, sessions: Sessions, runtime: Runtime) -> Session:
     runtime.check_claim(body.robot_id)
@@ -89,11 +93,17 @@ def read_session(session: SessionDep) -> Session:
     response_model=None,
     dependencies=Control,
     summary="Delete a session",
-    description="Stop the session and delete its recording and map. Saved maps are kept.",
-    responses=errors(401, 403, 404, 422),
+    description="Stop the session and delete its recording, its map and its saved map "
+    "versions (`/maps/<session id>/...`); `?keep_maps=true` keeps the saved maps.",
+    responses=errors(401, 403, 404, 422, 503),
 )
-def delete_session(session_id: SessionId, sessions: Sessions, runtime: Runtime) -> Response:
-    sessions.delete(session_id)
+def delete_session(
+    session_id: SessionId,
+    sessions: Sessions,
+    runtime: Runtime,
+    keep_maps: Annotated[bool, Query(description="keep the session's saved maps")] = False,
+) -> Response:
+    sessions.delete(session_id, keep_maps=keep_maps)
     runtime.fanout.end_streams_threadsafe(session_id)
     return Response(status_code=204)
 
@@ -157,12 +167,16 @@ def read_pose(session: SessionDep) -> PoseView:
     "/{session_id}/trajectory",
     response_model=Trajectory,
     dependencies=Read,
-    summary="Trajectory",
-    description="Every pose of the session in order, as JSON, or as TUM text "
-    "(`stamp x y z qx qy qz qw`, readable by evo) with `?format=tum`.",
+    summary="Trajectory (paged)",
+    description="The session's poses in order, one page at a time: those with "
+    f"`sequence >= since_seq`, at most `limit` (default {TRAJECTORY_PAGE}, at most "
+    f"{TRAJECTORY_PAGE_MAX}), only every `every`-th sequence (decimation: sequences that are "
+    "multiples of `every`). `next_seq` is the `since_seq` of the next page (null at the end). "
+    "As JSON, or as TUM text (`stamp x y z qx qy qz qw`, readable by evo) with `?format=tum`, "
+    "where the next page's `since_seq` is in the `X-Next-Seq` header (absent at the end).",
     responses={
         200: {"content": {"text/plain": {"schema": {"type": "string"}}}},
-        **errors(401, 404, 422),
+        **errors(401, 404, 422, 503),
     },
 )
 def read_trajectory(
@@ -170,11 +184,26 @@ def read_trajectory(
     format: Annotated[  # the query parameter's public name
         Literal["json", "tum"], Query(description="json (default) or tum")
     ] = "json",
+    since_seq: Annotated[int, Query(ge=0, description="first sequence wanted")] = 0,
+    limit: Annotated[
+        int, Query(ge=1, le=TRAJECTORY_PAGE_MAX, description="poses per page at most")
+    ] = TRAJECTORY_PAGE,
+    every: Annotated[
+        int, Query(ge=1, le=1_000_000, description="only sequences that are multiples of this")
+    ] = 1,
 ) -> Trajectory | Response:
-    poses = session.trajectory()
+    poses, next_seq, total = session.trajectory_page(since_seq, limit, every)
     if format == "tum":
-        return PlainTextResponse(render.trajectory_tum(poses), headers=NO_STORE)
-    return Trajectory(session_id=session.id, poses=[PoseView.of(p) for p in poses])
+        headers = dict(NO_STORE)
+        if next_seq is not None:
+            headers["X-Next-Seq"] = str(next_seq)
+        return PlainTextResponse(render.trajectory_tum(poses), headers=headers)
+    return Trajectory(
+        session_id=session.id,
+        poses=[PoseView.of(p) for p in poses],
+        next_seq=next_seq,
+        total=total,
+    )
 
 
 _PNG: dict[int | str, dict[str, Any]] = {

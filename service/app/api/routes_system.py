@@ -12,6 +12,7 @@ from service.app.api.schemas import (
     FleetConflict,
     FleetHealth,
     Health,
+    HealthStatus,
     HealthSummary,
     RobotHealth,
     ZenohHealth,
@@ -28,11 +29,13 @@ PROMETHEUS_TEXT = "text/plain; version=0.0.4; charset=utf-8"
     "/health",
     response_model=Health | HealthSummary,
     summary="Health",
-    description="`ok`, or `degraded` (with `warnings`) when Zenoh is closed, recording/fsync "
-    "failed, another instance claims this one's robots (`fleet.conflicts`), or a second "
-    "publisher uses a robot's key; plus per-robot ingest status. When the service has a read "
-    "token, a request without a token gets the status only (no robot ids); a wrong token is "
-    "401.",
+    description="`ok`; `restoring` while sessions are replayed after a restart (HTTP 200: the "
+    "service is alive and serves what is ready); `degraded` (with `warnings`) when Zenoh is "
+    "closed, recording/fsync failed, a session's files were found damaged "
+    "(`sessions_degraded`), another instance claims this one's robots (`fleet.conflicts`), or a "
+    "second publisher uses a robot's key; plus per-robot ingest status. When the service has a "
+    "read token, a request without a token gets the status only (no robot ids); a wrong token "
+    "is 401.",
     responses=errors(401),
 )
 def health(runtime: Runtime, scope: RequestScope) -> Health | HealthSummary:
@@ -86,11 +89,19 @@ def _health(runtime: Runtime) -> Health:
     duplicates = [v.robot_id for v in views if v.duplicate_publisher]
     if duplicates:
         warnings.append("a second publisher uses the key of: " + ", ".join(duplicates))
+    sessions = runtime.sessions.list()
+    damaged = [s.id for s in sessions if s.status in ("degraded", "damaged")]
+    restoring = sum(1 for s in sessions if s.status == "restoring")
+    if damaged:
+        warnings.append(f"{len(damaged)} session(s) with damaged files")
+    status: HealthStatus = "degraded" if warnings else "restoring" if restoring else "ok"
     return Health(
-        status="degraded" if warnings else "ok",
+        status=status,
         uptime_s=max(0.0, (time.time_ns() - runtime.started_ns) / 1e9),
         sessions_active=len(active),
-        sessions_total=len(runtime.sessions.list()),
+        sessions_total=len(sessions),
+        sessions_restoring=restoring,
+        sessions_degraded=damaged,
         zenoh=zenoh_info,
         robots=views,
         fleet=fleet,

@@ -11,7 +11,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from clients.wire import Pose, PoseFlag
-from service.app.sessions import SessionInfo
+from service.app.sessions import DamageSummary, SessionInfo
 from service.app.store import SavedMapMeta
 
 ID_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
@@ -70,10 +70,36 @@ def flag_names(flags: PoseFlag) -> list[str]:
     return [f.name for f in PoseFlag if f.value and flags & f and f.name is not None]
 
 
+class SessionDamage(BaseModel):
+    """What a restore found wrong in the session's files (all zero / empty when nothing)."""
+
+    records_lost: int = Field(description="records skipped as damaged (a lower bound)")
+    bytes_lost: int = Field(description="bytes of the recording skipped as damaged")
+    regions: int = Field(description="damaged stretches of the recording")
+    checkpoints_rejected: int = Field(description="checkpoints that failed their checksum")
+    notes: list[str] = Field(description="one line per finding")
+
+    @classmethod
+    def of(cls, damage: DamageSummary) -> SessionDamage:
+        return cls(
+            records_lost=damage.records_lost,
+            bytes_lost=damage.bytes_lost,
+            regions=damage.regions,
+            checkpoints_rejected=damage.checkpoints_rejected,
+            notes=list(damage.notes),
+        )
+
+
 class Session(BaseModel):
     id: str
     robot_id: str
     state: Literal["active", "stopped"]
+    status: Literal["restoring", "ok", "degraded", "damaged"] = Field(
+        description="`restoring` until replayed after a restart (counters read 0 meanwhile); "
+        "`degraded`: damage was found and skipped (see `damage`); `damaged`: the files "
+        "cannot be restored (kept as they are; see `mapping-service fsck`)"
+    )
+    damage: SessionDamage
     created_ns: int
     scans_accepted: int = Field(description="scans recorded into this session's current map")
     poses: int = Field(description="length of the trajectory")
@@ -93,6 +119,8 @@ class Session(BaseModel):
             resolution_m=info.resolution_m,
             use_odometry=info.use_odometry,
             last_pose=PoseView.of(info.last_pose) if info.last_pose is not None else None,
+            status=info.status,
+            damage=SessionDamage.of(info.damage),
         )
 
 
@@ -103,6 +131,10 @@ class SessionList(BaseModel):
 class Trajectory(BaseModel):
     session_id: str
     poses: list[PoseView]
+    next_seq: int | None = Field(
+        description="`since_seq` for the next page; null when this page reaches the end"
+    )
+    total: int = Field(description="poses in the whole trajectory")
 
 
 class MapUrls(BaseModel):
@@ -175,7 +207,7 @@ class FleetHealth(BaseModel):
     conflicts: list[FleetConflict] = Field(description="other instances claiming our robots")
 
 
-HealthStatus = Literal["ok", "degraded"]
+HealthStatus = Literal["ok", "restoring", "degraded"]
 
 
 class Health(BaseModel):
@@ -185,6 +217,10 @@ class Health(BaseModel):
     uptime_s: float
     sessions_active: int
     sessions_total: int
+    sessions_restoring: int = Field(description="sessions not replayed yet after a restart")
+    sessions_degraded: list[str] = Field(
+        description="ids of sessions whose files were found damaged (`degraded` or `damaged`)"
+    )
     zenoh: ZenohHealth
     robots: list[RobotHealth]
     fleet: FleetHealth
@@ -245,7 +281,10 @@ ERRORS: dict[int, dict[str, str]] = {
     409: {"description": "conflicts with the current state (`conflict`, `no_pose_yet`)"},
     413: {"description": "request body too large"},
     422: {"description": "request does not validate"},
-    503: {"description": "Zenoh is closed or failing (`zenoh_unavailable`)"},
+    503: {
+        "description": "Zenoh is closed or failing (`zenoh_unavailable`), or not now: a session "
+        "is restoring or a limit is reached (`unavailable`)",
+    },
 }
 
 ERROR_SCHEMA_REF = "#/components/schemas/ErrorBody"

@@ -232,7 +232,11 @@ class ServiceProc:
         timeout_s: float = 30.0,
         env: dict[str, str] | None = None,
         args: list[str] | None = None,
+        *,
+        wait_restored: bool = True,
+        preexec_fn: Callable[[], None] | None = None,
     ) -> None:
+        """Start and wait for `/health`; with `wait_restored`, until no session restores."""
         cmd = [
             sys.executable,
             "-m",
@@ -257,16 +261,24 @@ class ServiceProc:
         full_env.update(env or {})
         with self.log_path.open("ab") as log:
             self.proc = subprocess.Popen(
-                cmd, stdout=log, stderr=subprocess.STDOUT, cwd=REPO_ROOT, env=full_env
+                cmd,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                cwd=REPO_ROOT,
+                env=full_env,
+                preexec_fn=preexec_fn,  # noqa: PLW1509  # only setrlimit, in tests
             )
 
         def healthy() -> bool:
             assert self.proc is not None
             if self.proc.poll() is not None:
                 pytest.fail(f"service exited with {self.proc.returncode}:\n{self.log_tail()}")
-            return httpx.get(self.url + "/health", timeout=2.0).status_code == 200
+            r = httpx.get(self.url + "/health", timeout=2.0)
+            if r.status_code != 200:
+                return False
+            return not wait_restored or r.json().get("sessions_restoring", 0) == 0
 
-        wait_for(healthy, timeout_s, "the service to answer /health")
+        wait_for(healthy, timeout_s, "the service to answer /health (and restore)")
 
     def headers(self) -> dict[str, str]:
         return {"Authorization": f"Bearer {self.token}"} if self.token else {}
@@ -556,6 +568,8 @@ def runtime_factory_fixture(tmp_path: Path) -> Iterator[RuntimeFactory]:
         runtime = MappingRuntime(settings, zenoh_config=build_zenoh_config())
         runtime.start()
         started.append(runtime)
+        wait = getattr(runtime.sessions, "wait_restored", None)  # also runs against older mains
+        assert wait is None or wait(60), "sessions did not restore in 60 s"
         return runtime
 
     yield make

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import dataclasses
 import io
-import pickle
 import shutil
 from pathlib import Path
 
@@ -26,6 +24,7 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
 from clients.keyexpr import scan_key
 from clients.recording import RecordingWriter, iter_raw_records
 from clients.wire import Pose, Scan
+from service.app import checkpoint
 from service.app.errors import StoreError
 from service.app.sessions import MappingSession
 
@@ -37,6 +36,17 @@ def recording_of(session: MappingSession) -> Path:
 def assert_same_session(a: MappingSession, b: MappingSession) -> None:
     ia, ib = a.info(), b.info()
     assert ia == ib
+    assert_same_session_data(a, b)
+
+
+def assert_same_session_data(a: MappingSession, b: MappingSession) -> None:
+    """Counters, trajectory and map equal (the restore status may differ)."""
+    ia, ib = a.info(), b.info()
+    assert (ia.scans_accepted, ia.poses, ia.last_pose) == (
+        ib.scans_accepted,
+        ib.poses,
+        ib.last_pose,
+    )
     assert a.trajectory() == b.trajectory()
     ma, mb = a.map_snapshot(), b.map_snapshot()
     np.testing.assert_array_equal(ma.image.occupancy, mb.image.occupancy)
@@ -82,9 +92,9 @@ def test_crash_image_with_torn_tail_and_missing_pose(
     feed(live, robot, 25)
     crash = tmp_path / "crash"
     shutil.copytree(data, crash)  # the files as the kernel has them, service still running
+    copy_rec = crash / "sessions" / session.id / recording_of(session).name
     live.close()
 
-    copy_rec = crash / "sessions" / session.id / recording_of(session).name
     with RecordingWriter(copy_rec) as writer:  # one more scan recorded, its pose never was
         writer.append(robot.next_payload())
     with copy_rec.open("ab") as f:  # and half a record after it
@@ -128,18 +138,36 @@ def test_restart_from_checkpoint_replays_only_the_tail(
     estimated.clear()
     runtime_factory(crash).close()
     assert estimated == []
-    # A checkpoint whose estimator does not restore (an older version's, say) is replayed past.
-    path = crash / "sessions" / session.id / "checkpoint.pickle"
-    checkpoint = pickle.loads(path.read_bytes())
-    path.write_bytes(pickle.dumps(dataclasses.replace(checkpoint, mapper_state=b"not a state")))
+    folder = crash / "sessions" / session.id
+    newest, older = sorted(folder.glob("checkpoint-*.mck"), reverse=True)
+    # The newest checkpoint fails its checksum: the one before it is used, and it is said.
+    damaged = bytearray(newest.read_bytes())
+    damaged[len(damaged) // 2] ^= 0x5A
+    newest.write_bytes(bytes(damaged))
     third = runtime_factory(crash)
-    assert_same_session(session, third.sessions.get(session.id))
-    assert len(estimated) == 25
-    third.close()
+    restored = third.sessions.get(session.id)
+    assert_same_session_data(session, restored)
+    assert len(estimated) == 5  # from the checkpoint at scan 20
+    assert restored.status == "degraded"
+    assert restored.damage.checkpoints_rejected == 1
+    assert restored.damage.records_lost == 0
+    third.close()  # checkpoints the 5 scans: the damaged checkpoint is superseded and goes
     estimated.clear()
-    # A checkpoint that does not match the recording is ignored, never trusted.
-    path.write_bytes(b"not a pickle")
-    assert_same_session(session, runtime_factory(crash).sessions.get(session.id))
+    newest, older = sorted(folder.glob("checkpoint-*.mck"), reverse=True)
+    # A checkpoint whose estimator does not restore (another version's, say) is replayed past;
+    # so is one that is not a checkpoint at all.
+    older_header, _ = checkpoint.read(older)
+    older.write_bytes(checkpoint.encode(older_header, b"not a state"))
+    newest.write_bytes(checkpoint.encode(older_header, b"not a state"))  # names another segment
+    (folder / "checkpoint.pickle").write_bytes(b"an old pickle: never loaded")
+    fourth = runtime_factory(crash)
+    assert_same_session_data(session, fourth.sessions.get(session.id))
+    assert len(estimated) == 25
+    fourth.close()
+    estimated.clear()
+    for path in folder.glob("checkpoint-*.mck"):
+        path.write_bytes(b"not a checkpoint")
+    assert_same_session_data(session, runtime_factory(crash).sessions.get(session.id))
     assert len(estimated) == 25
 
 
@@ -177,6 +205,7 @@ def test_group_commit_fsyncs_only_changed_recordings(
     runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     runtime = runtime_factory()
+    runtime._stop.set()  # park the periodic syncer first: it would race the counting below
     session = runtime.sessions.create("r1", 0.05, True)
     runtime.sessions.create("idle", 0.05, True)
     feed(runtime, SimRobot("r1"), 2)
@@ -188,8 +217,7 @@ def test_group_commit_fsyncs_only_changed_recordings(
         real_fsync(fd)
 
     monkeypatch.setattr("service.app.store.os.fsync", counting_fsync)
-    runtime._stop.set()  # park the periodic syncer; drive it by hand
-    runtime._sync_once()
+    runtime._sync_once()  # driven by hand
     assert len(synced) == 1  # only the session with new records
     runtime._sync_once()
     assert len(synced) == 1  # nothing new since

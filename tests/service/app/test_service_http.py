@@ -265,6 +265,7 @@ def test_openapi_documents_every_route(client: TestClient) -> None:
         ("get", "/maps/{map_id}/{version}/map.png"),
         ("get", "/maps/{map_id}/{version}/map.pgm"),
         ("get", "/maps/{map_id}/{version}/map.yaml"),
+        ("delete", "/maps/{map_id}/{version}"),
         ("get", "/health"),
         ("get", "/fleet"),
         ("get", "/metrics"),
