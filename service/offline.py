@@ -21,7 +21,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Final
 
@@ -109,7 +109,7 @@ def map_scans(
     if slam_params is None:
         slam_params = SlamParams(loop_closure=loop_closure)
     elif slam_params.loop_closure != loop_closure:
-        slam_params = SlamParams(**{**_shallow(slam_params), "loop_closure": loop_closure})
+        slam_params = replace(slam_params, loop_closure=loop_closure)
     slam = SlamSession(params, slam_params)
     grid = OccupancyGrid(resolution_m)
     run = MapRun(grid=grid)
@@ -163,10 +163,6 @@ def map_scans(
     run.backend_s = slam.stats.total_s
     run.wall_s = time.perf_counter() - start
     return run
-
-
-def _shallow(params: SlamParams) -> dict[str, Any]:
-    return {f: getattr(params, f) for f in params.__dataclass_fields__}
 
 
 def _replace_params(params: EstimatorParams, **changes: Any) -> EstimatorParams:

@@ -151,6 +151,20 @@ def test_map_recording_writes_every_output(
     assert report["scans_with_odometry"] == 0
     assert report["input"]["use_odometry"] is False
     assert report["map"]["resolution_m"] == pytest.approx(0.1)
+    # Loops are closed by default: the back end reports what it did and what it cost.
+    loops = report["loop_closures"]
+    assert set(loops) == {"accepted", "rejected", "search_s", "optimise_s"}
+    assert loops["accepted"] >= 0
+    assert report["backend_s"] > 0.0
+    assert "loop closure:" in result.stdout
+
+    out3 = tmp_path / "front-end"
+    result = _run_cli(path, "--out", out3, "--no-odom", "--no-progress", "--no-loop-closure")
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out3 / "report.json").read_text())
+    assert report["loop_closures"] is None
+    assert report["backend_s"] == 0.0
+    assert "loop closure:" not in result.stdout
 
 
 def _assert_one_line_error(result: subprocess.CompletedProcess[str]) -> None:
