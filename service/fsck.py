@@ -158,16 +158,16 @@ def fsck(data_dir: Path, *, repair: bool) -> list[SessionReport]:
 def _print_text(reports: list[SessionReport], out: TextIO) -> None:
     for r in reports:
         status = "ok" if not r.findings else "DAMAGED"
-        print(f"{r.session_id}: {status} ({r.records} intact records)", file=out)
+        out.write(f"{r.session_id}: {status} ({r.records} intact records)\n")
         for f in r.findings:
             action = (
                 "repaired" if f.repaired else "repairable" if f.repairable else "not repairable"
             )
-            print(f"  {f.file}: {f.problem} [{action}]", file=out)
+            out.write(f"  {f.file}: {f.problem} [{action}]\n")
         for note in r.notes:
-            print(f"  note: {note}", file=out)
+            out.write(f"  note: {note}\n")
     damaged = sum(1 for r in reports if r.findings)
-    print(f"{len(reports)} session(s), {damaged} with damage", file=out)
+    out.write(f"{len(reports)} session(s), {damaged} with damage\n")
 
 
 def run_fsck(args: argparse.Namespace, out: TextIO = sys.stdout) -> int:

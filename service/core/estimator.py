@@ -58,6 +58,7 @@ from service.core.types import (
     LaserScan,
     Pose2D,
     PoseEstimate,
+    rotate_points,
     wrap_angle,
 )
 
@@ -73,14 +74,6 @@ def _sides(points_map_m: FloatArray, pose: Pose2D) -> npt.NDArray[np.bool_]:
     out = np.empty(points_map_m.shape, dtype=np.bool_)
     np.greater_equal(points_map_m[:, 0], pose.x_m, out=out[:, 0])
     np.greater_equal(points_map_m[:, 1], pose.y_m, out=out[:, 1])
-    return out
-
-
-def _rotate(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
-    c, s = math.cos(theta_rad), math.sin(theta_rad)
-    out = np.empty_like(points_xy_m)
-    out[:, 0] = c * points_xy_m[:, 0] - s * points_xy_m[:, 1]
-    out[:, 1] = s * points_xy_m[:, 0] + c * points_xy_m[:, 1]
     return out
 
 
@@ -436,7 +429,7 @@ class ManhattanEstimator:
 
         # --- translation (paper §III) --------------------------------------------------
         theta = wrap_angle(theta)  # the pose's heading: `_commit` reuses `cur` when it matches
-        cur = _rotate(pts, theta)
+        cur = rotate_points(pts, theta)
         ref = self._reference()
         if ref is None:
             return self._commit(scan, Pose2D(pred.x_m, pred.y_m, theta), 0.2, flags, pts, work=work)
@@ -639,7 +632,9 @@ class ManhattanEstimator:
         grid = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
         grid += np.array([pred.x_m, pred.y_m])
         cells = self._occupied()
-        scores = np.array([float(cells.hit_fraction(_rotate(sub, c), grid).max()) for c, _ in uniq])
+        scores = np.array(
+            [float(cells.hit_fraction(rotate_points(sub, c), grid).max()) for c, _ in uniq]
+        )
         # A candidate far from the prediction must beat the current heading by more.
         far = np.array([offset(c) / reach for c, _ in uniq])
         needed = scores[0] + p.heading_check_margin * (1.0 + 2.0 * far)
@@ -821,7 +816,7 @@ class ManhattanEstimator:
         ):
             cur, cur_w = work.rotated_m, work.weights
         else:
-            cur = _rotate(pts, pose.theta_rad)
+            cur = rotate_points(pts, pose.theta_rad)
             cur_w = orientation_weights(dirs, ok, pose.theta_rad)
         return _Keyframe(
             pose, cur + np.array([pose.x_m, pose.y_m]), cur_w, (dirs[ok] + pose.theta_rad) % math.pi

@@ -55,6 +55,15 @@ def column_bounds(points: npt.NDArray[Any]) -> tuple[float, float, float, float]
     return float(x.min()), float(y.min()), float(x.max()), float(y.max())
 
 
+def rotate_points(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
+    """(N, 2) points rotated counter-clockwise by theta about the origin."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    out = np.empty_like(points_xy_m)
+    out[:, 0] = c * points_xy_m[:, 0] - s * points_xy_m[:, 1]
+    out[:, 1] = s * points_xy_m[:, 0] + c * points_xy_m[:, 1]
+    return out
+
+
 def wrap_angle(theta_rad: float) -> float:
     """Wrap to [-π, π)."""
     return (theta_rad + math.pi) % (2.0 * math.pi) - math.pi

@@ -24,7 +24,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from service.core.maps.submaps import LikelihoodField, Submap
-from service.core.types import FloatArray, Pose2D
+from service.core.types import FloatArray, Pose2D, rotate_points
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,12 +76,6 @@ class LoopResult:
     cov_xy: FloatArray | None = None  # (2, 2) of `relative`'s translation, anchor frame
     score: float = 0.0
     correction_m: float = 0.0  # how far the closure moves the query from the graph's guess
-
-
-def _transform(points_m: FloatArray, theta_rad: float) -> FloatArray:
-    c, s = math.cos(theta_rad), math.sin(theta_rad)
-    out: FloatArray = points_m @ np.array([[c, s], [-s, c]])
-    return out
 
 
 def _scores(  # noqa: PLR0917 - the field, the points and the shifts to score them at
@@ -136,10 +130,11 @@ def place_scan(
     n_rot = max(0, round(params.rotation_half_deg / params.rotation_step_deg))
     half = max(1, math.ceil(half_window_m / block))
     best = (-1.0, guess)
+    rotated: dict[float, FloatArray] = {}  # the query points at each searched rotation
     cand_blocks: list[tuple[float, float, float, float]] = []  # (bound, theta, x0, y0)
     for k in range(-n_rot, n_rot + 1):
         theta = guess.theta_rad + math.radians(k * params.rotation_step_deg)
-        pts = _transform(points_m, theta)
+        pts = rotated[theta] = rotate_points(points_m, theta)
         xs = guess.x_m + block * np.arange(-half, half + 1, dtype=np.float64)
         ys = guess.y_m + block * np.arange(-half, half + 1, dtype=np.float64)
         coarse = _scores(field, pts, xs, ys, True, params.min_known_fraction)
@@ -154,7 +149,7 @@ def place_scan(
         floor = params.ambiguity_ratio * max(best[0], params.min_score)
         if bound < floor:
             break
-        pts = _transform(points_m, theta)
+        pts = rotated[theta]
         fine = _scores(field, pts, x0 + offsets, y0 + offsets, False, params.min_known_fraction)
         iy, ix = np.unravel_index(int(np.argmax(fine)), fine.shape)
         score = float(fine[iy, ix])
@@ -163,7 +158,9 @@ def place_scan(
         if score > best[0]:
             best = (score, Pose2D(x, y, theta))
     pose, best_score = best[1], max(best[0], 0.0)
-    pts = _transform(points_m, pose.theta_rad)
+    cached = rotated.get(pose.theta_rad)
+    # Nothing refined (no block passed): the guess itself, at the guess' rotation.
+    pts = cached if cached is not None else rotate_points(points_m, pose.theta_rad)
     rival = max(
         (
             score

@@ -26,7 +26,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.grid import OccupancyGrid
-from service.core.types import FloatArray, LaserScan, Pose2D
+from service.core.types import FloatArray, LaserScan, Pose2D, rotate_points
 
 F32Array = npt.NDArray[np.float32]
 
@@ -175,8 +175,7 @@ class Submap:
             if self.observed is None:
                 self.observed = OccupancyGrid(observed_resolution_m)
             self.observed.integrate(scan, rel)
-        c, s = math.cos(rel.theta_rad), math.sin(rel.theta_rad)
-        pts = points_laser_m @ np.array([[c, s], [-s, c]]) + (rel.x_m, rel.y_m)
+        pts = rotate_points(points_laser_m, rel.theta_rad) + np.array([rel.x_m, rel.y_m])
         self.nodes.append(node)
         self.chunks.append(pts)
         self.node_xy_m.append((rel.x_m, rel.y_m))
