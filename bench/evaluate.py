@@ -378,7 +378,7 @@ def start_offset_sweep(dataset: RealDataset, *, loop_closure: bool = True) -> di
     """
     from clients.logs import iter_log_scans
     from service.bridge import scan_to_laser
-    from service.core.params import EstimatorParams
+    from service.core.frontend.params import EstimatorParams
     from service.core.slam import SlamParams, SlamSession
 
     lasers = [

@@ -41,8 +41,8 @@ class Pipeline:
     """One estimator and one occupancy grid, fed as a mapping session feeds them."""
 
     def __init__(self, keyframes_only: bool) -> None:
-        from service.core.estimator import ManhattanEstimator
-        from service.core.grid import OccupancyGrid
+        from service.core.frontend.estimator import ManhattanEstimator
+        from service.core.maps.grid import OccupancyGrid
 
         self.estimator = ManhattanEstimator()
         self.grid = OccupancyGrid()

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.core.estimator import ManhattanEstimator
+from service.core.frontend.estimator import ManhattanEstimator
 from service.core.types import LaserScan
 
 # Like bench/evaluate.py: ../shared/datasets next to the checkout (DATASETS_DIR overrides).
@@ -110,10 +110,10 @@ def load_estimator(root: Path) -> type[ManhattanEstimator]:
     ours = {k: sys.modules.pop(k) for k in list(sys.modules) if k.split(".")[0] == "service"}
     sys.path.insert(0, str(root))
     try:
-        import service.core.estimator as other
+        import service.core.frontend.estimator as other
 
         if not Path(other.__file__ or "").resolve().is_relative_to(root.resolve()):
-            raise SystemExit(f"{root}: no service/core/estimator.py there")
+            raise SystemExit(f"{root}: no service/core/frontend/estimator.py there")
         cls: type[ManhattanEstimator] = other.ManhattanEstimator
     finally:
         sys.path.remove(str(root))

@@ -43,7 +43,7 @@ class Method:
 
 
 def ours() -> Method:
-    from service.core.estimator import ManhattanEstimator
+    from service.core.frontend.estimator import ManhattanEstimator
 
     est = ManhattanEstimator()
 
@@ -51,7 +51,9 @@ def ours() -> Method:
         p = est.process(scan).pose
         return (p.x_m, p.y_m, p.theta_rad)
 
-    return Method("ours", "`service.core.estimator.ManhattanEstimator`, default parameters", step)
+    return Method(
+        "ours", "`service.core.frontend.estimator.ManhattanEstimator`, default parameters", step
+    )
 
 
 def paper_baseline() -> Method:
@@ -128,7 +130,7 @@ def time_alone(scans: Sequence[LaserScan], passes: int = 3) -> dict[str, Any]:
     caches the other methods filled; alone is how the service's mapper runs it. This section
     has no side-by-side partner to share the machine's noise with, hence the best of a few.
     """
-    from service.core.estimator import ManhattanEstimator
+    from service.core.frontend.estimator import ManhattanEstimator
 
     perf, cpu = time.perf_counter_ns, time.process_time_ns
     best: tuple[TimingSummary, TimingSummary] | None = None
@@ -269,7 +271,7 @@ def run_speed(
 
 def profile_ours(run: SyntheticRun, max_scans: int = 400) -> Profile:
     """cProfile of a fresh estimator over the same scans: where a missed target's time goes."""
-    from service.core.estimator import ManhattanEstimator
+    from service.core.frontend.estimator import ManhattanEstimator
 
     est = ManhattanEstimator()
     scans = run.scans[:max_scans]

@@ -2,7 +2,7 @@
 
 `make mutation` runs it (not part of `make test` or `.ci/run`). Every mutant is a plausible bug
 in one of three places the issue names: the estimator's public steps
-(`service/core/estimator.py`, `heading.py`), the wire decoder (`clients/wire.py`) and the
+(`service/core/frontend/estimator.py`, `heading.py`), the wire decoder (`clients/wire.py`) and the
 recording writer (`clients/recording.py`). For each, only the fast tests of that place run,
 in stages (a later stage only when the earlier ones pass), with `-x`: a mutant is *killed*
 when a test fails, *survived* when all pass. The unmutated copy must pass every stage first.
@@ -80,7 +80,9 @@ def _r(name: str, original: str, mutated: str) -> Mutant:
     return Mutant("recording", name, "clients/recording.py", original, mutated)
 
 
-def _e(name: str, original: str, mutated: str, path: str = "service/core/estimator.py") -> Mutant:
+def _e(
+    name: str, original: str, mutated: str, path: str = "service/core/frontend/estimator.py"
+) -> Mutant:
     return Mutant("estimator", name, path, original, mutated)
 
 
@@ -293,7 +295,7 @@ MUTANTS: tuple[Mutant, ...] = (
         "heading: the ±45° rule always picks k = 0",
         "    k = round((predicted_rad - manhattan_rad) / QUARTER)",
         "    k = 0",
-        path="service/core/heading.py",
+        path="service/core/frontend/heading.py",
     ),
     _e(
         "first scan: map axes not the Manhattan angle",
@@ -485,7 +487,7 @@ def report(results: Sequence[Result], elapsed_s: float) -> str:
         label = {
             "wire": "wire decoder (`clients/wire.py`)",
             "recording": "recording writer (`clients/recording.py`)",
-            "estimator": "estimator steps (`service/core/estimator.py`, `heading.py`)",
+            "estimator": "estimator steps (`service/core/frontend/estimator.py`, `heading.py`)",
         }[group]
         lines.append(f"| {label} | {len(rs)} | {killed} | {killed / len(rs):.0%} | {survivors} |")
     total = len(results)

@@ -26,7 +26,7 @@ import numpy as np
 import numpy.typing as npt
 from PIL import Image, ImageDraw, ImageFont
 
-from service.core.grid import GridImage
+from service.core.maps.grid import GridImage
 from service.core.types import Pose2D
 
 log = logging.getLogger(__name__)

@@ -31,7 +31,7 @@ from rosbags.typesys import Stores, get_typestore
 
 from clients.wire import Pose, Scan
 from service.bridge import scan_to_laser
-from service.core.grid import OccupancyGrid
+from service.core.maps.grid import OccupancyGrid
 from service.core.types import Pose2D
 
 log = logging.getLogger(__name__)

@@ -33,8 +33,8 @@ from clients.logs import LogError, LogInfo, iter_log_scans, probe_log
 from clients.wire import PoseFlag, Scan
 from service import mapio
 from service.bridge import scan_to_laser
-from service.core.grid import OccupancyGrid
-from service.core.params import EstimatorParams
+from service.core.frontend.params import EstimatorParams
+from service.core.maps.grid import OccupancyGrid
 from service.core.slam import LoopStats, SlamParams, SlamSession
 from service.core.types import LaserScan, Pose2D, PoseEstimate
 

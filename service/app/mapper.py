@@ -47,14 +47,14 @@ ScanConverter = Callable[[Scan, bool], LaserScan]  # (scan, use_odometry) -> Las
 
 
 def default_estimator_factory(use_odometry: bool) -> Estimator:
-    from service.core.estimator import ManhattanEstimator  # noqa: PLC0415
-    from service.core.params import EstimatorParams  # noqa: PLC0415
+    from service.core.frontend.estimator import ManhattanEstimator  # noqa: PLC0415
+    from service.core.frontend.params import EstimatorParams  # noqa: PLC0415
 
     return ManhattanEstimator(EstimatorParams(use_odometry=use_odometry))
 
 
 def default_grid_factory(resolution_m: float) -> Grid:
-    from service.core.grid import OccupancyGrid  # noqa: PLC0415
+    from service.core.maps.grid import OccupancyGrid  # noqa: PLC0415
 
     return OccupancyGrid(resolution_m=resolution_m)
 
@@ -104,7 +104,7 @@ class Mapper(Protocol):
         ...
 
     def reset(self) -> None: ...
-    def snapshot(self) -> Any: ...  # service.core.grid.GridImage
+    def snapshot(self) -> Any: ...  # service.core.maps.grid.GridImage
     def state(self) -> bytes: ...  # for checkpoints
     def restore(self, state: bytes) -> None: ...
     def close(self) -> None: ...

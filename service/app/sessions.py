@@ -95,7 +95,7 @@ CHECKPOINTS_KEPT: Final = 2
 
 @dataclass(frozen=True, slots=True)
 class MapSnapshot:
-    image: Any  # service.core.grid.GridImage
+    image: Any  # service.core.maps.grid.GridImage
     trajectory_xy_m: npt.NDArray[np.float64]  # (N, 2)
     last_pose: Pose | None
     revision: int

@@ -26,9 +26,9 @@ import numpy as np
 from clients.wire import PoseFlag
 from service.core.backend.graph import GraphParams, PoseGraph, rotate_covariance
 from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
-from service.core.estimator import ManhattanEstimator
+from service.core.frontend.estimator import ManhattanEstimator
+from service.core.frontend.params import EstimatorParams
 from service.core.maps.submaps import SubmapBuilder, SubmapParams
-from service.core.params import EstimatorParams
 from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate
 
 _NOT_ANCHORED = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL

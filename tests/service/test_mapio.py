@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from service import mapio
-from service.core.grid import GridImage
+from service.core.maps.grid import GridImage
 from service.core.types import Pose2D
 
 

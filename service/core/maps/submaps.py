@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import numpy.typing as npt
 
-from service.core.grid import OccupancyGrid
+from service.core.maps.grid import OccupancyGrid
 from service.core.types import FloatArray, LaserScan, Pose2D, rotate_points
 
 F32Array = npt.NDArray[np.float32]

@@ -18,7 +18,7 @@ from service.app.foxglove import (
     trajectory_message,
     transform_message,
 )
-from service.core.grid import GridImage
+from service.core.maps.grid import GridImage
 
 LINE_LIST = 2  # foxglove.LinePrimitive.Type: LINE_STRIP 0, LINE_LOOP 1, LINE_LIST 2
 

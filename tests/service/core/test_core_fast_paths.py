@@ -8,11 +8,11 @@ import numpy as np
 import numpy.typing as npt
 import pytest
 
-from service.core import refine
-from service.core.gated import SortedReference, correlate_axis_gated
-from service.core.heading import _median, heading_scores
-from service.core.refine import OccupiedCells
-from service.core.translation import axis_density, correlate_axis
+from service.core.frontend import refine
+from service.core.frontend.gated import SortedReference, correlate_axis_gated
+from service.core.frontend.heading import _median, heading_scores
+from service.core.frontend.refine import OccupiedCells
+from service.core.frontend.translation import axis_density, correlate_axis
 from service.core.types import FloatArray
 
 

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from service.core.heading import QUARTER, measure_heading
+from service.core.frontend.heading import QUARTER, measure_heading
 from service.core.types import FloatArray
 
 

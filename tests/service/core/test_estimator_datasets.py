@@ -24,9 +24,9 @@ from conftest import dataset_path
 
 from clients.logs import iter_log_scans
 from service.bridge import scan_to_laser
-from service.core.estimator import ManhattanEstimator
+from service.core.frontend.estimator import ManhattanEstimator
+from service.core.frontend.params import EstimatorParams
 from service.core.metrics import parse_relations, relation_errors
-from service.core.params import EstimatorParams
 from service.core.types import Pose2D
 
 PUBLISHED_SEQUENTIAL_SCAN_MATCHING_M = 0.173

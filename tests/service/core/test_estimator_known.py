@@ -8,9 +8,14 @@ import numpy as np
 import pytest
 
 from clients.wire import PoseFlag
-from service.core.estimator import ManhattanEstimator
-from service.core.heading import measure_heading, resolve_heading, thin_points, wrap_quarter
-from service.core.params import EstimatorParams
+from service.core.frontend.estimator import ManhattanEstimator
+from service.core.frontend.heading import (
+    measure_heading,
+    resolve_heading,
+    thin_points,
+    wrap_quarter,
+)
+from service.core.frontend.params import EstimatorParams
 from service.core.types import LaserScan, Pose2D, wrap_angle
 
 Segments = np.ndarray  # (S, 4): x0, y0, x1, y1

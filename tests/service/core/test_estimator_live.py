@@ -15,7 +15,7 @@ import pytest
 
 from bench.loadgen import path_scans
 from sensor_agent.sim import world as sim
-from service.core.estimator import ManhattanEstimator
+from service.core.frontend.estimator import ManhattanEstimator
 from service.core.types import Pose2D, wrap_angle
 
 PERIOD_S = 1.0 / 40.0

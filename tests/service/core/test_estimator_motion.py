@@ -7,8 +7,8 @@ import math
 import numpy as np
 from test_estimator_known import cast, l_corridor  # sibling test module (pytest prepends its dir)
 
-from service.core.estimator import ManhattanEstimator
-from service.core.params import EstimatorParams
+from service.core.frontend.estimator import ManhattanEstimator
+from service.core.frontend.params import EstimatorParams
 from service.core.types import Pose2D, wrap_angle
 
 

@@ -18,7 +18,7 @@ from sensor_agent.sim.world import (
     generate_trajectory,
     simulate_scan,
 )
-from service.core.estimator import ManhattanEstimator
+from service.core.frontend.estimator import ManhattanEstimator
 from service.core.types import LaserScan, Pose2D, wrap_angle
 
 

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 from test_estimator_known import Segments, box, cast, room  # sibling module (pytest's path)
 
-from service.core.estimator import ManhattanEstimator
-from service.core.heading import measure_heading
-from service.core.params import EstimatorParams
-from service.core.profile import profile_turn
+from service.core.frontend.estimator import ManhattanEstimator
+from service.core.frontend.heading import measure_heading
+from service.core.frontend.params import EstimatorParams
+from service.core.frontend.profile import profile_turn
 from service.core.types import LaserScan, Pose2D, wrap_angle
 
 

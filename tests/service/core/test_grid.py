@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sensor_agent.sim import LaserModel, World, simulate_scan
-from service.core.grid import TILE_CELLS, GridError, GridImage, OccupancyGrid
+from service.core.maps.grid import TILE_CELLS, GridError, GridImage, OccupancyGrid
 from service.core.types import LaserScan, Pose2D
 
 RES = 0.05

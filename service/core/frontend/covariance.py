@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from service.core.translation import AxisMatch
+from service.core.frontend.translation import AxisMatch
 from service.core.types import Covariance3
 
 

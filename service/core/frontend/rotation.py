@@ -15,7 +15,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from service.core.heading import parabolic_offset
+from service.core.frontend.heading import parabolic_offset
 from service.core.types import FloatArray
 
 _BIN_RAD = math.radians(0.5)

@@ -26,9 +26,9 @@ import numpy as np
 import numpy.typing as npt
 
 from clients.wire import PoseFlag
-from service.core.covariance import CovarianceTracker, axis_sigma_m
-from service.core.gated import SortedReference, correlate_axis_gated
-from service.core.heading import (
+from service.core.frontend.covariance import CovarianceTracker, axis_sigma_m
+from service.core.frontend.gated import SortedReference, correlate_axis_gated
+from service.core.frontend.heading import (
     QUARTER,
     HeadingMeasurement,
     measure_heading,
@@ -36,16 +36,16 @@ from service.core.heading import (
     thin_points,
     track_heading,
 )
-from service.core.params import EstimatorParams
-from service.core.profile import profile_turn
-from service.core.refine import OccupiedCells
-from service.core.rotation import (
+from service.core.frontend.params import EstimatorParams
+from service.core.frontend.profile import profile_turn
+from service.core.frontend.refine import OccupiedCells
+from service.core.frontend.rotation import (
     direction_counts,
     direction_spectrum,
     match_rotation,
     tangent_directions,
 )
-from service.core.translation import (
+from service.core.frontend.translation import (
     AxisDensity,
     AxisMatch,
     axis_density,
@@ -464,7 +464,7 @@ class ManhattanEstimator:
             and cur.shape[0] >= p.translation_gate_min_points
         ):
             # The axis with fewer constraining points is the along-corridor one, where a few
-            # faces decide and projection aliasing bites (`service.core.gated`).
+            # faces decide and projection aliasing bites (`service.core.frontend.gated`).
             gated = (0, 1) if p.translation_gate_both else (int(support[1] < support[0]),)
 
         def peak(axis: int, curve: tuple[FloatArray, FloatArray], min_support: float) -> AxisMatch:
