@@ -4,6 +4,9 @@ Reads the scans (`clients.logs`), runs the estimator on each, integrates the map
 estimated poses and writes into DIR:
 
 - `trajectory.tum`: one line per scan, `stamp x y z qx qy qz qw`, stamp = scan header stamp (s);
+- `trajectory_covariance.csv`: one row per scan, the front end's own pose (before loop
+  closure), quality, flags, keyframe, and its 3x3 (x, y, theta) covariance row-major
+  (`PoseEstimate.covariance`: relative to the latest keyframe before the scan, map axes);
 - `map.png` (with the trajectory drawn), `map.pgm` + `map.yaml` (ROS map_server);
 - `report.json`: scan count, estimator time per scan, quality and flag statistics, input, map.
 
@@ -276,7 +279,8 @@ def write_outputs(
     input_info: dict[str, Any] | None = None,
     params: EstimatorParams | None = None,
 ) -> dict[str, Any]:
-    """Write trajectory.tum, map.png, map.pgm, map.yaml and report.json; return the report."""
+    """Write trajectory.tum, trajectory_covariance.csv, map.png, map.pgm, map.yaml and
+    report.json; return the report."""
     out = Path(out_dir)
     if run.grid is None:
         raise OfflineError("the run has no map")
@@ -285,6 +289,7 @@ def write_outputs(
     try:
         out.mkdir(parents=True, exist_ok=True)
         _write_text(out / "trajectory.tum", mapio.format_tum(run.stamps_ns, run.poses))
+        _write_text(out / "trajectory_covariance.csv", format_covariance_csv(run))
         _write_bytes(
             out / "map.png",
             mapio.to_png(
@@ -297,6 +302,25 @@ def write_outputs(
     except OSError as err:
         raise OfflineError(f"cannot write to {out}: {err.strerror or err}") from None
     return report
+
+
+COVARIANCE_CSV_HEADER: Final = (
+    "stamp,x_m,y_m,theta_rad,quality,flags,keyframe,c_xx,c_xy,c_xt,c_yx,c_yy,c_yt,c_tx,c_ty,c_tt"
+)
+
+
+def format_covariance_csv(run: MapRun) -> str:
+    """`trajectory_covariance.csv`: the front end's pose, quality, flags, keyframe and
+    covariance per scan (stamp in seconds with 9 decimals, as in trajectory.tum)."""
+    lines = [COVARIANCE_CSV_HEADER]
+    for stamp, e in zip(run.stamps_ns, run.estimates, strict=True):
+        cov = tuple(e.covariance) if len(e.covariance) == 9 else (math.nan,) * 9
+        lines.append(
+            f"{mapio.format_tum_stamp(stamp)},{e.pose.x_m:.6f},{e.pose.y_m:.6f},"
+            f"{e.pose.theta_rad:.8f},{e.quality:.4f},{int(e.flags)},{int(e.is_keyframe)},"
+            + ",".join(f"{v:.6g}" for v in cov)
+        )
+    return "\n".join(lines) + "\n"
 
 
 def check_output_dir(out_dir: str | Path) -> None:

@@ -16,7 +16,8 @@ Public API (other modules code against these names):
 - ``LaserModel`` with ``LaserModel.utm30lx()``, ``.sick_lms200()``, ``.urg04lx()``.
 - ``simulate_scan(world, pose, model, rng) -> ScanSample``: ``ranges_mm`` (uint32, device error
   codes below the minimum range for invalid beams, PROTOCOLS.md A.5) and ``ranges_m`` (float64,
-  NaN for invalid beams).
+  NaN for invalid beams); ``apply_beam_model(true_m, model, rng)`` is its second half (noise and
+  codes on given noise-free ranges).
 - ``generate_trajectory(world, seed, spacing_m=0.3, ...) -> Trajectory``: ground-truth poses along
   the building's corridor loop (a loop of >= 400 m on the paper building), one pose every
   ``spacing_m`` of travel or 10 degrees of rotation, smooth turns; the last pose closes the loop.
@@ -699,6 +700,16 @@ def simulate_scan(
 ) -> ScanSample:
     """Ray-cast ``model``'s beams from ``pose`` and apply its noise, dropouts and error codes."""
     true_m = world.raycast(pose, model.angles_rad(), model.range_max_m)
+    return apply_beam_model(true_m, model, rng)
+
+
+def apply_beam_model(true_m: FloatArray, model: LaserModel, rng: np.random.Generator) -> ScanSample:
+    """``model``'s noise, dropouts and error codes on noise-free ranges (``inf``: no return).
+
+    ``simulate_scan`` is a ray cast followed by this; callers that add their own obstacles to
+    the ray cast (``sensor_agent.sim.families``: walking people) call it directly.
+    """
+    true_m = np.asarray(true_m, dtype=np.float64)
     n = true_m.shape[0]
     noisy_m = (
         true_m + rng.normal(0.0, model.noise_sigma_m, n) if model.noise_sigma_m > 0 else true_m
