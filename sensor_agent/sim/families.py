@@ -269,7 +269,7 @@ def generate(
         raise SimError(f"unknown family {family!r}; use one of {', '.join(FAMILIES)}")
     rng = np.random.default_rng([seed, _FAMILY_CODE[family], 0xFA31])
     model = model if model is not None else LaserModel.utm30lx()
-    d_features, d_style, d_rate, d_speed = _seeded_choices(family, rng)
+    d_features, d_style, d_rate, d_speed = _seeded_choices(family, seed, rng)
     features = features if features is not None else d_features
     style = style if style is not None else d_style
     rate = d_rate if scan_rate_hz == "seeded" else scan_rate_hz
@@ -344,8 +344,11 @@ def generate(
     )
 
 
+_RATE_CYCLE_HZ: Final[tuple[float | None, ...]] = (None, None, None, None, 5.0, 10.0, 20.0, 40.0)
+
+
 def _seeded_choices(
-    family: str, rng: np.random.Generator
+    family: str, seed: int, rng: np.random.Generator
 ) -> tuple[Features, PathStyle, float | None, float]:
     """Default features, path style, scan rate and speed of a family's seed."""
     u = rng.random(12)
@@ -365,10 +368,9 @@ def _seeded_choices(
     if family == "manhattan":
         # world.generate_trajectory's own path (a 0.2 m sinusoidal wiggle), no extra style.
         return Features(), PathStyle(weave_std_m=0.0, wobble_deg=0.0), None, 0.7
-    # Half the worlds in the paper's setting, the others at a fixed rate (5-40 Hz).
-    rate: float | None = None
-    if rng.random() >= 0.5:
-        rate = float(rng.choice([5.0, 10.0, 20.0, 40.0], p=[0.35, 0.3, 0.2, 0.15]))
+    # Half the worlds in the paper's setting, the others at a fixed rate (5-40 Hz), cycling
+    # with the seed so that every four consecutive seeds of a family cover several rates.
+    rate = _RATE_CYCLE_HZ[(seed + _FAMILY_CODE[family]) % len(_RATE_CYCLE_HZ)]
     speed = float(rng.uniform(0.6, 1.2)) if rate is not None else 0.7
     weave = u[3] < 0.6
     style = PathStyle(
@@ -863,7 +865,7 @@ def _office(rng: np.random.Generator, features: Features, style: PathStyle) -> _
     def snap(v: float) -> float:
         return round(v / res) * res
 
-    width = snap(float(rng.uniform(105.0, 120.0)))
+    width = snap(float(rng.uniform(108.0, 122.0)))
     height = snap(float(rng.uniform(42.0, 50.0)))
     t = 0.15
     w = snap(float(rng.uniform(1.9, 2.3)))
