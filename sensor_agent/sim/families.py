@@ -196,6 +196,17 @@ class GeneratedWorld:
     def path_length_m(self) -> float:
         return float(self.trajectory.path_length_m)
 
+    def first(self, n: int) -> GeneratedWorld:
+        """The same world with only the first ``n`` poses (a short file for tests and demos)."""
+        t = self.trajectory
+        short = Trajectory(
+            stamps_ns=t.stamps_ns[:n],
+            poses=t.poses[:n],
+            loop_length_m=t.loop_length_m,
+            path_length_m=float(np.hypot(*np.diff(t.poses[:n, :2], axis=0).T).sum()),
+        )
+        return replace(self, trajectory=short)
+
     def describe(self) -> dict[str, Any]:
         """JSON-friendly summary (no arrays)."""
         return {
