@@ -668,8 +668,11 @@ def run_set(
         load = os.getloadavg()
     except OSError:
         load = (math.nan, math.nan, math.nan)
+    from bench.common import git_commit
+
     payload = {
         "set": set_name,
+        "git_commit": git_commit(),
         "loop_closure": loop_closure,
         "jobs": jobs,
         "wall_s": round(wall, 1),
@@ -688,14 +691,66 @@ def run_set(
     return results, markdown
 
 
+_SET_FILES: Final = ("tuning", "test", "tuning-loop-closure", "test-loop-closure")
+DOC_KEEP: Final = "worlds"
+
+
 def _write_summary(out_dir: Path) -> None:
     parts = ["## Generated buildings (bench.worlds)", ""]
-    for name in ("tuning", "test", "tuning-loop-closure", "test-loop-closure"):
+    for name in _SET_FILES:
         p = out_dir / f"{name}.md"
         if p.exists():
             parts += [p.read_text(), ""]
     if out_dir == DEFAULT_OUT:
         SUMMARY_MD.write_text("\n".join(parts))
+
+
+def write_doc(doc: Path, out_dir: Path) -> None:
+    """Put every set's tables found in `out_dir` into `doc` as its "Generated buildings"
+    section, a `<!-- keep:worlds -->` block that `bench.report` keeps when it regenerates
+    docs/benchmarks.md."""
+    from bench.common import git_commit
+
+    begin, end = f"<!-- keep:{DOC_KEEP} -->", f"<!-- /keep:{DOC_KEEP} -->"
+    runs = []
+    for name in _SET_FILES:
+        md, js = out_dir / f"{name}.md", out_dir / f"{name}.json"
+        if md.exists() and js.exists():
+            meta = json.loads(js.read_text())
+            runs.append((md.read_text().strip(), meta))
+    loads = ", ".join(
+        f"{m['set']}{' (loop closure)' if m['loop_closure'] else ''}: load "
+        f"{m['load_average_end'][0]:.1f}, commit `{m.get('git_commit', git_commit())}`"
+        for _, m in runs
+    )
+    lines = [
+        begin,
+        "## Generated buildings",
+        "",
+        (
+            "The front end on the building families of `sensor_agent/sim/families.py` "
+            "([docs/worlds.md](worlds.md)): the tuning set (seeds 0 and 1 of each of the six "
+            "families, 12 worlds) and the held-out test set (seeds 1000+, 24 worlds of 300-415 m), "
+            "each world written as MCAP and mapped by the CLI a user runs. Re-run with "
+            "`python -m bench.worlds run --set tuning|test --doc docs/benchmarks.md`. The "
+            "machine was shared with other agents (1-minute load average at the end of each "
+            f"run and the commit it ran: {loads}; 2 worlds mapped at a time), so ms/scan are "
+            "inflated and indicative only; the accuracy figures do not depend on the load."
+        ),
+        "",
+    ]
+    for text, _ in runs:
+        lines += [text, ""]
+    lines += [end]
+    block = "\n".join(lines) + "\n"
+    old = doc.read_text() if doc.exists() else ""
+    if begin in old and end in old:
+        start = old.index(begin)
+        stop = old.index(end) + len(end) + 1
+        new = old[:start] + block + old[stop:]
+    else:
+        new = old.rstrip("\n") + "\n\n" + block
+    doc.write_text(new)
 
 
 def _finite(value: Any) -> Any:
@@ -785,6 +840,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_run.add_argument("--loop-closure", action="store_true", help="the back end on too")
     p_run.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR")
     p_run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p_run.add_argument(
+        "--doc",
+        type=Path,
+        metavar="MD",
+        help="also put every set's tables found in --out into this file's 'Generated "
+        "buildings' section (e.g. docs/benchmarks.md)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
@@ -832,6 +894,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         progress=not args.no_progress,
     )
     sys.stdout.write(markdown + "\n")
+    if args.doc is not None:
+        write_doc(args.doc, args.out)
     return 0
 
 

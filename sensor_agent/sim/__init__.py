@@ -1,7 +1,9 @@
 """Synthetic worlds for tests, the emulator, the demo and benchmarks (pure numpy, no IO).
 
 See `sensor_agent.sim.world` for the API: `generate_building`, `World.raycast`, `LaserModel`,
-`simulate_scan`, `generate_trajectory`, `RobotMotion`.
+`simulate_scan`, `generate_trajectory`, `RobotMotion`; `sensor_agent.sim.families` for the
+building families (ring, long corridor, office, hall, wing, manhattan) with people, glass and
+path styles, and the tuning/test seed split (docs/worlds.md).
 """
 
 from sensor_agent.sim.world import (

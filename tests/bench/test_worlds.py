@@ -165,3 +165,20 @@ def test_mcap_is_read_back_by_mapping_service_map(
     report = json.loads((out2 / "report.json").read_text())
     assert report["scans_with_odometry"] == 40
     assert report["input"]["has_odometry"] is True
+
+
+@pytest.mark.parametrize("command", [[], ["write"], ["run"], ["list"]])
+def test_help(command: list[str], capsys: pytest.CaptureFixture[str]) -> None:
+    from bench.worlds import main
+
+    with pytest.raises(SystemExit) as stop:
+        main([*command, "--help"])
+    assert stop.value.code == 0
+    out = capsys.readouterr().out
+    assert "usage:" in out
+    if command == ["write"]:
+        assert "--odom" in out
+        assert "LaserScan" in out
+    if command == ["run"]:
+        assert "--no-loop-closure" in out
+        assert "--jobs" in out
