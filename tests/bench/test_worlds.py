@@ -182,3 +182,28 @@ def test_help(command: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     if command == ["run"]:
         assert "--no-loop-closure" in out
         assert "--jobs" in out
+
+
+def test_doc_section_is_one_keep_block_replaced_in_place(tmp_path: Path) -> None:
+    from bench.worlds import write_doc
+
+    out = tmp_path / "worlds"
+    out.mkdir()
+    meta = {"set": "test", "loop_closure": False, "load_average_end": [3.0], "git_commit": "abc"}
+    (out / "test.json").write_text(json.dumps(meta))
+    (out / "test.md").write_text("### Test set, front end alone\n\n| table |")
+    doc = tmp_path / "benchmarks.md"
+    doc.write_text("# Benchmarks\n\nbefore\n\n<!-- keep:other -->\nx\n<!-- /keep:other -->\n")
+    write_doc(doc, out)
+    first = doc.read_text()
+    assert first.count("<!-- keep:worlds -->") == 1
+    assert "### Test set, front end alone" in first
+    assert "commit `abc`" in first
+    assert "<!-- keep:other -->" in first
+    (out / "test.md").write_text("### Test set, front end alone\n\n| new table |")
+    write_doc(doc, out)
+    second = doc.read_text()
+    assert second.count("<!-- keep:worlds -->") == 1
+    assert "| new table |" in second
+    assert "| table |" not in second
+    assert second.startswith("# Benchmarks\n\nbefore\n")
