@@ -733,13 +733,14 @@ def write_doc(doc: Path, out_dir: Path) -> None:
             "families, 12 worlds) and the held-out test set (24 worlds of 300-415 m: seeds "
             "1000-1002 of `manhattan`, 1000-1004 of `ring`, 1000-1003 of `long_corridor`, "
             "`office`, `hall` and `wing`), each world written as MCAP and mapped by the CLI a "
-            "user runs; half the non-ring worlds at 5-40 Hz, the rest in the paper setting (a "
-            "scan every 0.3 m; every ring and manhattan world). The test set is shown only as "
-            "distributions. Re-run with "
+            "user runs; half the worlds of the other four families at 5-40 Hz, the rest in the "
+            "paper setting (a scan every 0.3 m, as every ring and manhattan world). The test set "
+            "is shown only as distributions. Re-run with "
             "`python -m bench.worlds run --set tuning|test --doc docs/benchmarks.md`. The "
             "machine was shared with other agents (1-minute load average at the end of each "
             f"run and the commit it ran: {loads}; 2 worlds mapped at a time), so ms/scan are "
-            "inflated and indicative only; the accuracy figures do not depend on the load."
+            "inflated and indicative only (the issue's 0.92 ms is one run alone on a quieter "
+            "machine); the accuracy figures do not depend on the load."
         ),
         "",
     ]
