@@ -28,27 +28,31 @@ from typing import Any
 
 import psutil
 
-from bench.profiling import pyspy_available
+from bench.profiling import _frame_name, pyspy_available
 
 log = logging.getLogger(__name__)
 
-# (stage, substrings of a frame that put a sample there); checked in order, first match wins.
+# (stage, substrings of a frame `func (path/of/module.py)`): the innermost frame of a sample that
+# matches a stage decides (checked in this order at each frame).
 STAGES: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("zenoh callback", ("on_sample", "_on_scan", "submit (service/app/")),
-    ("fsync", ("sync (service/app/store.py)", "_sync_loop", "fsync")),
-    ("record (append)", ("RecordingWriter.append", "append (service/app/store.py)", "append (")),
-    ("estimator", ("process (service/core/", "_process (service/core/", "frontend")),
-    ("grid", ("integrate (service/core/grid.py)",)),
-    ("decode", ("decode_scan", "scan_to_laser", "to_laser")),
-    ("pose encode", ("encode_pose",)),
-    ("pose publish (Zenoh)", ("publish (service/app/fanout.py)", "put (")),
+    ("estimator (front end)", ("service/core/frontend/",)),
+    ("grid", ("service/core/maps/",)),
+    ("back end", ("service/core/backend/", "service/app/backend.py", "gtsam")),
+    ("zenoh callback", ("on_sample (service/app/ingest.py)", "_on_scan (service/app/runtime.py)")),
+    ("fsync", ("sync (service/app/store.py)", "_sync_loop (service/app/runtime.py)")),
+    ("record (append)", ("clients/recording.py",)),
+    ("decode + validate", ("decode_scan (clients/wire.py)", "scan_to_laser", "bridge.py")),
+    ("pose encode", ("encode_pose (clients/wire.py)",)),
+    ("pose publish (Zenoh put)", ("publish (service/app/fanout.py)",)),
     (
         "pipe (pickle, send, recv)",
-        ("multiprocessing/connection.py", "reduction.py", "MapperProcess.call", "_serve ("),
+        ("multiprocessing/connection.py", "reduction.py", "pickle"),
     ),
-    ("fan-out (SSE)", ("fanout.py", "sse", "next_chunk", "stream")),
-    ("HTTP / event loop", ("uvicorn", "asyncio", "starlette", "fastapi", "h11")),
-    ("metrics", ("metrics.py",)),
+    ("fan-out (SSE)", ("service/app/fanout.py", "sse_pose_frame", "frames (service/app/api")),
+    ("HTTP / event loop", ("uvicorn/", "asyncio/", "starlette/", "fastapi/", "h11/", "anyio/")),
+    ("metrics", ("service/app/metrics.py",)),
+    ("session bookkeeping", ("service/app/sessions.py", "service/app/mapper.py")),
+    ("ingest scheduling", ("service/app/ingest.py", "threading.py")),
 )
 OTHER = "other"
 
@@ -78,8 +82,9 @@ def _child_label(child: psutil.Process) -> str:
 
 def classify(stack: Sequence[str]) -> str:
     """The stage of one sampled stack (frames outermost first)."""
-    for stage, needles in STAGES:
-        for frame in reversed(stack):  # the innermost frame that names a stage decides
+    for raw in reversed(stack):  # the innermost frame that names a stage decides
+        frame = _frame_name(raw)
+        for stage, needles in STAGES:
             if any(n in frame for n in needles):
                 return stage
     return OTHER
@@ -137,7 +142,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s: %(message)s")
     points = []
-    with tempfile.TemporaryDirectory(prefix="cpu-budget-") as tmp:
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="cpu-budget-", dir=args.out.parent) as tmp:
         for n in (int(x) for x in args.robots.split(",") if x):
             cfg = ScaleConfig(
                 n,
@@ -151,6 +157,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             point = run_point(cfg, Path(tmp) / f"n{n}")
             point.pop("metrics_delta", None)
             points.append(point)
+            for stacks in Path(tmp).glob(f"n{n}/*.stacks"):  # kept for a closer look
+                stacks.replace(args.out.with_name(f"{args.out.stem}-n{n}-{stacks.name}"))
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(points, indent=1))
     print("| robots | process | CPU % | CPU-ms/scan | stages (CPU-ms/scan) |")

@@ -151,6 +151,17 @@ class Done(NamedTuple):
 LOST: Final = Done(False, None, None, -1, 0, "lost: the mapper process died", 0.0)
 
 
+def _flat(done: Done) -> tuple[Any, ...]:
+    """`done` as plain tuples for the pipe (a NamedTuple pickles its class by name: slower)."""
+    mapped = done.mapped
+    return (done.recorded, None if mapped is None else tuple(mapped), *done[2:])
+
+
+def _unflat(flat: tuple[Any, ...]) -> Done:
+    mapped = flat[1]
+    return Done(flat[0], None if mapped is None else MappedScan(*mapped), *flat[2:])
+
+
 class MapperError(Exception):
     """The mapper could not map a scan (the scan stays recorded)."""
 
@@ -320,12 +331,12 @@ def _serve(conn: multiprocessing.connection.Connection, engine: Engine) -> None:
             _, key, payload = message
             lease = leases.get(key)
             if lease is None:  # cannot happen: the service forwards only under a lease
-                out = ("done", key, Done(False, None, None, -1, 0, "lost: no lease", 0.0))
+                out = ("done", key, _flat(Done(False, None, None, -1, 0, "lost: no lease", 0.0)))
             else:
                 try:
-                    out = ("done", key, lease.handle(payload))
+                    out = ("done", key, _flat(lease.handle(payload)))
                 except Exception as err:
-                    out = ("done", key, Done(False, None, None, -1, 0, f"store: {err}", 0.0))
+                    out = ("done", key, _flat(Done(False, None, None, -1, 0, f"store: {err}", 0.0)))
         else:
             _, req, op, key, args = message
             try:
@@ -419,7 +430,8 @@ class MapperProcess:
             except (EOFError, OSError):
                 break
             if message[0] == "done":
-                _, key, done = message
+                _, key, flat = message
+                done = _unflat(flat)
                 with self._lock:
                     waiting = self._inflight.get(key)
                     on_done = waiting.popleft() if waiting else None
