@@ -649,7 +649,7 @@ def _accuracy_section(accuracy: dict[str, Any] | None, img_dir: Path, img_rel: s
 
 def _fleet_row(p: dict[str, Any], label: str) -> list[str]:
     if "error" in p:
-        return [label, str(p["robots"]), f"failed: {p['error']}", "", "", "", "", "", "", ""]
+        return [label, str(p["robots"]), f"failed: {p['error']}", "", "", "", "", "", "", "", ""]
     load = p.get("loadavg_before") or [math.nan]
     return [
         label,
@@ -658,11 +658,22 @@ def _fleet_row(p: dict[str, Any], label: str) -> list[str]:
         _f(p["latency_p50_ms"], 1),
         _f(p["latency_p99_ms"], 1),
         _f(p.get("scan_processing_ms_mean"), 2),
+        _cpu_per_scan(p),
         _f(p["service_cpu_pct"], 0),
         _f(p["machine_busy_pct"], 0),
         _f(load[0], 1),
         _f(p["publish_rate_min_robot_hz"], 1),
     ]
+
+
+def _cpu_per_scan(p: dict[str, Any]) -> str:
+    """CPU-ms per accepted scan: the service's main process + its mapper processes."""
+    by_proc = p.get("cpu_ms_per_scan_by_process") or {}
+    if not by_proc:
+        return ""
+    main = by_proc.get("main", math.nan)
+    mappers = sum(v for k, v in by_proc.items() if k != "main")
+    return f"{main + mappers:.2f} ({main:.2f} + {mappers:.2f})"
 
 
 FLEET_HEADER = [
@@ -672,6 +683,7 @@ FLEET_HEADER = [
     "p50 ms",
     "p99 ms",
     "per-scan ms",
+    "service CPU-ms/scan (main + mappers)",
     "service CPU %",
     "machine busy %",
     "load avg 1 min",
@@ -695,7 +707,10 @@ def fleet_section(fleet: dict[str, Any] | None) -> list[str]:
             "every process on the machine (100 % = all cores). The machine is shared with other "
             "work: the load average beside each point says how much (above the core count, "
             "every process waits for a core, ours included). *Per-scan ms* is the service's "
-            "`mapping_scan_processing_seconds` mean (decode, record, estimate, publish)."
+            "`mapping_scan_processing_seconds` mean (decode, record, estimate, publish). "
+            "*Service CPU-ms/scan* is the CPU time (user + system) of the service's main "
+            "process and of its mapper processes per accepted scan: far less sensitive to "
+            "a busy neighbour than any wall time."
         ),
         "",
         *_table(

@@ -36,6 +36,7 @@ import numpy as np
 import psutil
 
 from bench.common import BenchError, Target
+from bench.cpu_budget import process_tree_cpu, stage_shares, start_pyspy
 from bench.profiling import pyspy_profile
 
 log = logging.getLogger(__name__)
@@ -87,6 +88,7 @@ class ScaleConfig:
     )
     zenoh_pose_subscribers: int = 0  # Zenoh sessions subscribed to every pose, same process
     zenoh_via_router: bool = True  # the subscribers behind one router (in that process)
+    stage_profile: bool = False  # py-spy each service process on its own (bench.cpu_budget)
 
 
 @dataclass(slots=True)
@@ -499,10 +501,19 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
         metrics0 = _scrape(client)
         result["loadavg_before"] = list(os.getloadavg())
         cpu0 = _cpu_snapshot(svc, load_ps, sub_ps)
+        by_proc0 = process_tree_cpu(svc.pid), time.monotonic()
         t0_ns, w0 = time.time_ns(), time.monotonic()
         profile = None
+        spies: dict[str, tuple[subprocess.Popen[bytes], Path]] = {}
+        if cfg.stage_profile:
+            for label in by_proc0[0]:
+                pid = svc.pid if label == "main" else int(label.rsplit("-", 1)[1])
+                out = work_dir / f"{name}-{label}.stacks"
+                spy = start_pyspy(pid, min(cfg.profile_s, cfg.measure_s), out)
+                if spy is not None:
+                    spies[label] = (spy, out)
         with _rss_sampler(svc) as rss:
-            if cfg.profile_s > 0:
+            if cfg.profile_s > 0 and not cfg.stage_profile:
                 profile = pyspy_profile(
                     service.pid,
                     min(cfg.profile_s, cfg.measure_s),
@@ -512,6 +523,7 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
             time.sleep(max(0.0, cfg.measure_s - (time.monotonic() - w0)))
         t1_ns = time.time_ns()
         cpu1 = _cpu_snapshot(svc, load_ps, sub_ps)
+        by_proc1 = process_tree_cpu(svc.pid), time.monotonic()
         result["loadavg_after"] = list(os.getloadavg())
         metrics1 = _scrape(client)
 
@@ -563,6 +575,26 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
             else math.nan
         )
         result["stream_poses_dropped"] = delta.get("mapping_pose_stream_dropped_total", 0.0)
+        accepted = delta.get("mapping_scans_accepted_total", 0.0)
+        span_s = max(by_proc1[1] - by_proc0[1], 1e-9)
+        used = {
+            k: by_proc1[0][k] - by_proc0[0][k]
+            for k in by_proc1[0]
+            if k in by_proc0[0] and not k.startswith("tracker")
+        }
+        result["scans_accepted_in_window"] = accepted
+        result["cpu_pct_by_process"] = {k: 100.0 * v / span_s for k, v in used.items()}
+        result["cpu_ms_per_scan_by_process"] = {
+            k: 1000.0 * v / accepted if accepted else math.nan for k, v in used.items()
+        }
+        shares = {}
+        for label, (spy, out) in spies.items():
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                spy.wait(timeout=60)
+            if out.exists():
+                shares[label] = stage_shares(out.read_text())
+        if shares:
+            result["stage_shares"] = shares
         if profile is not None:
             result["profile"] = profile.as_dict()
     finally:

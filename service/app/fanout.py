@@ -7,11 +7,13 @@ subscribers:
   or dead one costs at most a non-blocking enqueue;
 - browser streams: the worker appends the pose to one pending list and schedules one flush on
   the HTTP event loop per burst (not per pose, not per stream). The loop encodes each pose's
-  SSE frame once and appends the same bytes to each stream's bounded buffer (full: the oldest
-  frame is dropped and counted, exactly once per pose lost). One timer per `min_interval_s`
-  wakes the streams that have frames, and each writes all of them at once: 1,000 streams cost
-  the loop at most 1,000 writes per interval, not one per pose per stream, and a stalled
-  browser only fills its own buffer.
+  SSE frame once and appends it once to its session's `FrameLog`, a bounded log shared by the
+  session's streams, each reading from its own cursor (a stream that falls more than the depth
+  behind loses the oldest frames, each counted exactly once per pose and stream). One timer per
+  `min_interval_s` wakes the streams of the sessions that have new frames, and each writes all
+  of its frames at once: per pose the loop does one append whatever the number of streams, and
+  1,000 streams cost it at most 1,000 writes per interval; a stalled browser holds only its
+  cursor.
 """
 
 from __future__ import annotations
@@ -45,33 +47,69 @@ KEEPALIVE_S = 15.0
 KEEPALIVE_FRAME = b": ping\n\n"
 
 
+class FrameLog:
+    """One session's recent SSE frames, shared by all its streams (on the event loop).
+
+    A pose's frame is appended once, whatever the number of streams; each stream reads from
+    its own cursor. The log keeps the newest `depth` frames: a stream that falls further behind
+    loses the oldest, counted when it next reads (or closes). So the fan-out's work per pose is
+    one append, and per stream one join per write: O(poses + streams), not O(poses x streams).
+    """
+
+    def __init__(self, depth: int) -> None:
+        self.depth = depth
+        self.items: deque[tuple[tuple[int, int], bytes]] = deque()  # ((seq, stamp_ns), frame)
+        self.first = 0  # position of items[0] since the log began
+
+    @property
+    def end(self) -> int:
+        return self.first + len(self.items)
+
+    def append(self, key: tuple[int, int], frame: bytes) -> None:
+        self.items.append((key, frame))
+        if len(self.items) > self.depth:
+            self.items.popleft()
+            self.first += 1
+
+
 @dataclass(eq=False)
 class PoseStream:
     """One browser's subscription to one session's poses; lives on the event loop."""
 
     session_id: str
-    depth: int  # frames buffered at most (oldest dropped first)
-    frames: deque[bytes] = field(default_factory=deque)
+    log: FrameLog
+    cursor: int = 0  # the next position of `log` this stream has not written
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     ended: bool = False
     ping: bool = False  # a keep-alive comment is due
     dropped: int = 0  # poses this stream lost because it was not read in time
     skip: tuple[int, int] | None = None  # (seq, stamp_ns) already sent when the stream opened
     last_write: float = field(default_factory=time.monotonic)
+    on_lost: Callable[[int], None] | None = None
 
-    def offer(self, pose: Pose, frame: bytes) -> bool:
-        """Buffer `frame` (of `pose`); False when the oldest frame had to go to make room.
-        The stream is woken by the fan-out's tick, not here."""
-        if self.skip is not None:
-            if (pose.seq, pose.stamp_ns) == self.skip:
-                return True
+    @property
+    def has_frames(self) -> bool:
+        return self.cursor < self.log.end
+
+    def _lost(self, count: int) -> None:
+        self.dropped += count
+        if self.on_lost is not None:
+            self.on_lost(count)
+
+    def take(self) -> bytes:
+        """Every frame since the last take, as one chunk (the oldest lost ones counted)."""
+        log = self.log
+        if self.cursor < log.first:
+            self._lost(log.first - self.cursor)
+            self.cursor = log.first
+        start = self.cursor - log.first
+        items = [log.items[i] for i in range(start, len(log.items))]
+        self.cursor = log.end
+        if items and self.skip is not None:
+            if items[0][0] == self.skip:
+                items = items[1:]
             self.skip = None
-        lost = len(self.frames) >= self.depth
-        if lost:
-            self.frames.popleft()
-            self.dropped += 1
-        self.frames.append(frame)
-        return not lost
+        return b"".join(frame for _, frame in items)
 
     def end(self) -> None:
         self.ended = True
@@ -81,11 +119,12 @@ class PoseStream:
         """Every frame buffered since the last chunk, as one write; a keep-alive comment when
         one is due; None once ended and emptied."""
         while True:
-            if self.frames:
-                chunk = b"".join(self.frames)
-                self.frames.clear()
-                self.last_write = time.monotonic()
-                return chunk
+            if self.has_frames:
+                chunk = self.take()
+                if chunk:
+                    self.last_write = time.monotonic()
+                    return chunk
+                continue
             if self.ended:
                 return None
             if self.ping:
@@ -99,6 +138,7 @@ class PoseStream:
 @dataclass
 class _Streams:
     by_session: dict[str, set[PoseStream]] = field(default_factory=lambda: defaultdict(set))
+    logs: dict[str, FrameLog] = field(default_factory=dict)
 
 
 class PoseFanout:
@@ -114,7 +154,7 @@ class PoseFanout:
         self._depth = stream_queue_depth
         self._min_interval_s = stream_min_interval_s
         self._encode_frame: FrameEncoder | None = None
-        self._due: set[PoseStream] = set()  # streams with frames, woken at the next tick
+        self._due: set[str] = set()  # sessions with new frames, their streams woken at the tick
         self._tick_pending = False
         self._keepalive: asyncio.TimerHandle | None = None
         self._pending: list[Pose] = []  # poses for the streams, not yet on the loop
@@ -201,21 +241,17 @@ class PoseFanout:
     # -- event-loop side -------------------------------------------------------------------
 
     def _flush(self) -> None:
-        """Hand the pending poses to their sessions' streams (on the loop)."""
+        """Append the pending poses' frames to their sessions' logs (on the loop): one frame
+        per pose, however many streams read it."""
         with self._pending_lock:
             poses, self._pending = self._pending, []
-        lost = 0
+        logs = self._streams.logs
         for pose in poses:
-            streams = self._streams.by_session.get(pose.session_id)
-            if not streams:
+            log = logs.get(pose.session_id)
+            if log is None:  # nobody streams this session
                 continue
-            frame = self.frame(pose)  # encoded once for every stream of the session
-            for stream in streams:
-                if not stream.offer(pose, frame):
-                    lost += 1
-            self._due.update(streams)
-        if lost:
-            self._metrics.inc(STREAM_DROPPED, lost)
+            log.append((pose.seq, pose.stamp_ns), self.frame(pose))  # encoded once
+            self._due.add(pose.session_id)
         if self._due and not self._tick_pending:
             # One timer for all streams: each writes at most once per interval.
             self._tick_pending = True
@@ -223,11 +259,12 @@ class PoseFanout:
             self._loop.call_later(self._min_interval_s, self._tick)
 
     def _tick(self) -> None:
-        """Wake every stream that has frames (on the loop)."""
+        """Wake every stream of the sessions that have new frames (on the loop)."""
         self._tick_pending = False
         due, self._due = self._due, set()
-        for stream in due:
-            stream.wake.set()
+        for session_id in due:
+            for stream in self._streams.by_session.get(session_id, ()):
+                stream.wake.set()
 
     def _schedule_keepalive(self) -> None:
         loop = self._loop
@@ -249,7 +286,12 @@ class PoseFanout:
 
     def open_stream(self, session_id: str) -> PoseStream:
         """Subscribe on the event loop; pair with `close_stream` in a finally."""
-        stream = PoseStream(session_id, self._depth)
+        log = self._streams.logs.get(session_id)
+        if log is None:
+            log = FrameLog(self._depth)
+            if not self._closed:
+                self._streams.logs[session_id] = log
+        stream = PoseStream(session_id, log, cursor=log.end, on_lost=self._count_lost)
         if self._closed:
             stream.end()
             return stream
@@ -257,14 +299,21 @@ class PoseFanout:
         self._stream_count += 1
         return stream
 
+    def _count_lost(self, count: int) -> None:
+        self._metrics.inc(STREAM_DROPPED, count)
+
     def close_stream(self, stream: PoseStream) -> None:
+        if stream.cursor < stream.log.first:  # lost and never read: still counted
+            stream._lost(stream.log.first - stream.cursor)
+            stream.cursor = stream.log.first
         streams = self._streams.by_session.get(stream.session_id)
-        self._due.discard(stream)
         if streams is not None and stream in streams:
             streams.discard(stream)
             self._stream_count -= 1
             if not streams:
                 del self._streams.by_session[stream.session_id]
+                self._streams.logs.pop(stream.session_id, None)
+                self._due.discard(stream.session_id)
 
     def end_streams(self, session_id: str | None = None) -> None:
         """Tell streams (of one session, or all) to finish; runs on the event loop."""

@@ -17,6 +17,7 @@ processed in order by one worker at a time.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -32,7 +33,7 @@ from clients.wire import DecodeError, Pose, Scan, decode_scan, is_valid_robot_id
 from service.app.errors import ServiceError
 from service.app.metrics import SCAN_SECONDS_BUCKETS, Labels, Metrics, labels
 from service.app.publishers import source_id_of
-from service.app.sessions import SessionManager
+from service.app.sessions import DEFERRED, Ingested, SessionManager
 from service.app.settings import IngestSettings
 
 log = logging.getLogger(__name__)
@@ -54,7 +55,8 @@ def declare_metrics(metrics: Metrics, depths: Callable[[], list[tuple[Labels, fl
     metrics.counter(SCANS_UNMAPPED, "Valid scans from robots without an active session.")
     metrics.counter(
         SCANS_DROPPED,
-        "Scans not processed: queue_full (oldest dropped), too_many_robots, store_error.",
+        "Scans not processed: queue_full (oldest dropped), too_many_robots, store_error, "
+        "mapper_lost (its mapper process died before recording it).",
     )
     metrics.histogram(
         SCAN_SECONDS,
@@ -205,34 +207,65 @@ class Ingest:
                     continue
                 payload = queue.items.popleft()
                 queue.busy = True
+            deferred = False
             try:
-                self._handle(queue.robot_id, payload)
+                deferred = self._handle(queue, payload)
             except Exception:  # a worker must never die: its robots would go unmapped
                 log.exception("ingest worker failed on a scan of %s", queue.robot_id)
-            with self._lock:
-                queue.busy = False
-                if queue.items:
-                    self._ready.append(queue)  # back of the line: the next robot goes first
-                else:
-                    queue.scheduled = False
+            if not deferred:
+                self._release(queue, notify=False)
 
-    def _handle(self, robot_id: str, payload: bytes) -> None:
+    def _release(self, queue: _RobotQueue, *, notify: bool) -> None:
+        """The robot's scan is done: its next one may go (one in flight per robot keeps its
+        scans in order)."""
+        with self._lock:
+            queue.busy = False
+            if queue.items:
+                self._ready.append(queue)  # back of the line: the next robot goes first
+                if notify:
+                    self._wakeup.notify()
+            else:
+                queue.scheduled = False
+
+    def _handle(self, queue: _RobotQueue, payload: bytes) -> bool:
+        """Validate and hand one scan to its session; True when the session answers later
+        (its mapper process records and maps it, then `_completed` runs)."""
+        robot_id = queue.robot_id
         t0 = time.perf_counter()
         try:
             scan = decode_scan(payload, max_payload_bytes=self._settings.max_payload_bytes)
         except DecodeError as err:
             self._reject(err.reason, robot_id, err.detail)
-            return
+            return False
         if scan.robot_id != robot_id:
             self._reject("robot_id_mismatch", robot_id, f"payload says {scan.robot_id!r}")
-            return
+            return False
         session = self._sessions.active_for(robot_id)
+        on_done = functools.partial(self._completed, queue, scan, t0)
         try:
-            result = session.ingest(payload, scan) if session is not None else None
+            result = session.ingest(payload, scan, on_done) if session is not None else None
         except (OSError, ServiceError) as err:  # disk full, I/O error: not durable, not counted
-            self.store_errors += 1
-            self._metrics.inc(SCANS_DROPPED, robot=robot_id, reason="store_error")
-            self._log_once("store_error", robot_id, f"could not record the scan: {err}")
+            self._store_error(robot_id, str(err))
+            return False
+        if result is DEFERRED:
+            return True
+        self._finish(robot_id, scan, result, t0)
+        return False
+
+    def _completed(self, queue: _RobotQueue, scan: Scan, t0: float, result: Ingested) -> None:
+        """A deferred scan's answer (on its mapper process's reader thread)."""
+        try:
+            self._finish(queue.robot_id, scan, result, t0)
+        finally:
+            self._release(queue, notify=True)
+
+    def _finish(self, robot_id: str, scan: Scan, result: Ingested | None, t0: float) -> None:
+        if result is not None and not result.accepted and result.error is not None:
+            if result.error.startswith("store"):
+                self._store_error(robot_id, result.error)
+            else:  # its mapper process died before recording it: never accepted
+                self._metrics.inc(SCANS_DROPPED, robot=robot_id, reason="mapper_lost")
+                self._log_once("mapper_lost", robot_id, f"scan not recorded: {result.error}")
             return
         if result is None or not result.accepted:
             self._metrics.inc(SCANS_UNMAPPED, robot=robot_id)
@@ -252,6 +285,11 @@ class Ingest:
             except Exception:
                 log.exception("a scan observer failed on %s", robot_id)
         self._metrics.observe(SCAN_SECONDS, time.perf_counter() - t0)
+
+    def _store_error(self, robot_id: str, detail: str) -> None:
+        self.store_errors += 1
+        self._metrics.inc(SCANS_DROPPED, robot=robot_id, reason="store_error")
+        self._log_once("store_error", robot_id, f"could not record the scan: {detail}")
 
     # -- bookkeeping -----------------------------------------------------------------------
 

@@ -3,28 +3,49 @@
 One Python process estimates on one core: the work per scan holds the GIL. With
 `mapper_processes` > 0 the service starts that many worker processes and places each session's
 estimator and grid in one of them (the least loaded when the session is made). The service's
-process keeps everything else: Zenoh, decoding, the recording, poses, HTTP. An ingest thread
-sends a scan (~5 KiB pickled) and waits for ~100 bytes back, without holding the GIL, so K
-processes estimate K robots at once.
+process keeps Zenoh, validation, HTTP and the fan-out.
+
+The per-scan path of an active session runs in its mapper process under a *lease* of the
+session's recording (`RemoteMapper.delegate`): the service forwards each validated scan's wire
+bytes without waiting (`forward`), and the process records the scan, maps it, builds, encodes
+and records the pose (`_Lease.handle`), then sends back one small `Done`; the service applies it
+and publishes the recorded pose bytes. So no service thread blocks on a round trip per scan, and
+the service's process does no recording or pose encoding. Every other operation on the session
+(checkpoint, stop, reset, idle close) first takes the lease back (`revoke`, ordered after the
+scans forwarded before it: their `Done` messages are applied when it returns).
+
+Protocol on the pipe: service → process `("call", id, op, key, args)` and `("scan", key,
+payload)`; process → service `("reply", id, status, value)` and `("done", key, Done)`. One
+reader thread per process in the service receives both.
 
 A mapper process that dies (killed, out of memory) loses the state of its sessions. The process
-is started again at the next call, and each of its sessions sees `MapperLostError` once: the session
-then rebuilds its mapper from its checkpoint and recording (`MappingSession`), as a restart does.
+is started again at the next call, and each of its sessions sees `MapperLostError` once: the
+session then rebuilds itself from its checkpoint and recording (`MappingSession`), as a restart
+does. Mapper processes die with the service (`PR_SET_PDEATHSIG`): after a `kill -9` of the
+service no orphan keeps appending to a recording that the next start replays.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import itertools
 import logging
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
+import sys
 import threading
+import time
+from collections import deque
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, NamedTuple, Protocol
+from typing import Any, Final, NamedTuple, Protocol
 
-from clients.wire import Scan, decode_scan
+from clients.recording import RecordingReport, RecordingWriter
+from clients.wire import Pose, PoseFlag, Scan, decode_scan, encode_pose
 from service.app import statecodec
 from service.core.types import LaserScan, Pose2D, PoseEstimate
 
@@ -87,6 +108,60 @@ class MappedScan(NamedTuple):
     covariance: tuple[float, ...] = ()  # row-major 3×3 (x, y, θ); () when the estimator has none
 
 
+def make_pose(mapped: MappedScan, session_id: str, robot_id: str, seq: int, stamp_ns: int) -> Pose:
+    """The pose a session records and publishes for a mapped scan (both transports)."""
+    return Pose(
+        session_id=session_id,
+        robot_id=robot_id,
+        seq=seq,
+        stamp_ns=stamp_ns,
+        x_m=mapped.x_m,
+        y_m=mapped.y_m,
+        theta_rad=mapped.theta_rad,
+        quality=min(max(mapped.quality, 0.0), 1.0),
+        flags=PoseFlag(mapped.flags),
+        covariance=mapped.covariance if len(mapped.covariance) == 9 else None,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class LeaseSpec:
+    """What a mapper process needs to record a session's scans and poses itself."""
+
+    session_id: str
+    robot_id: str
+    path: str  # the recording segment appends go to
+    end_offset: int | None  # where its intact records end (None: read the file to find out)
+    next_seq: int  # the sequence of the next pose
+    fsync_each: bool
+
+
+class Done(NamedTuple):
+    """A mapper process's answer for one forwarded scan (small: it crosses the pipe)."""
+
+    recorded: bool  # the scan is in the recording (it counts as accepted)
+    mapped: MappedScan | None  # None: estimator failure, store failure, or the process was lost
+    pose_bytes: bytes | None  # the pose as recorded (`encode_pose`), published as it is
+    seq: int  # the pose's sequence
+    stamp_ns: int  # the scan's stamp
+    error: str | None  # "store: ...", "estimator: ...", "lost: ..."
+    busy_s: float  # the process's time on the scan: decode, record, map, encode, record
+
+
+LOST: Final = Done(False, None, None, -1, 0, "lost: the mapper process died", 0.0)
+
+
+def _flat(done: Done) -> tuple[Any, ...]:
+    """`done` as plain tuples for the pipe (a NamedTuple pickles its class by name: slower)."""
+    mapped = done.mapped
+    return (done.recorded, None if mapped is None else tuple(mapped), *done[2:])
+
+
+def _unflat(flat: tuple[Any, ...]) -> Done:
+    mapped = flat[1]
+    return Done(flat[0], None if mapped is None else MappedScan(*mapped), *flat[2:])
+
+
 class MapperError(Exception):
     """The mapper could not map a scan (the scan stays recorded)."""
 
@@ -147,6 +222,8 @@ class LocalMapper:
         self._estimator.reset()
         self._grid = self._engine.make_grid(self._resolution_m)
 
+    delegates = False  # records nothing itself: the session's store does
+
     def snapshot(self) -> Any:
         return self._grid.snapshot()
 
@@ -178,44 +255,142 @@ def local_mapper_factory(engine: Engine) -> MapperFactory:
 # -- mapper processes ---------------------------------------------------------------------------
 
 
+class _Lease:
+    """A session's per-scan path inside a mapper process, while it holds the recording."""
+
+    def __init__(self, spec: LeaseSpec, mapper: LocalMapper) -> None:
+        self.spec = spec
+        self.mapper = mapper
+        self.next_seq = spec.next_seq
+        end = spec.end_offset
+        report = RecordingReport(valid_end=end, size_bytes=end) if end is not None else None
+        self.writer = RecordingWriter(
+            spec.path, fsync_every=1 if spec.fsync_each else 0, report=report
+        )
+
+    def handle(self, payload: bytes) -> Done:
+        """The per-scan path: record the scan, map it, record its pose (in this order: a scan
+        is durable before it counts, its pose before anyone is told)."""
+        t0 = time.perf_counter()
+        scan = decode_scan(payload, max_payload_bytes=len(payload))  # validated by the service
+        seq = self.next_seq
+        try:
+            self.writer.append(payload)
+        except Exception as err:  # disk full, I/O error: not recorded, not accepted
+            return Done(False, None, None, seq, scan.stamp_ns, f"store: {err}", 0.0)
+        try:
+            mapped = self.mapper.map_scan(scan, payload)
+        except Exception as err:  # recorded; a replay meets the same failure
+            log.debug("estimator failed", exc_info=True)
+            busy = time.perf_counter() - t0
+            return Done(True, None, None, seq, scan.stamp_ns, f"estimator: {err!r}", busy)
+        pose = make_pose(mapped, self.spec.session_id, self.spec.robot_id, seq, scan.stamp_ns)
+        encoded = encode_pose(pose)
+        try:
+            self.writer.append(encoded)
+        except Exception as err:
+            return Done(True, None, None, seq, scan.stamp_ns, f"store: {err}", 0.0)
+        self.next_seq = seq + 1
+        return Done(True, mapped, encoded, seq, scan.stamp_ns, None, time.perf_counter() - t0)
+
+    def close(self) -> int:
+        """fsync and close the recording (a checkpoint may follow); its end offset."""
+        self.writer.sync()
+        self.writer.close()
+        return self.writer.end_offset
+
+
+def _die_with_parent() -> None:
+    """SIGKILL this process when the service dies (Linux): an orphan must not append to a
+    recording that the next start replays."""
+    if not sys.platform.startswith("linux"):
+        return
+    with contextlib.suppress(Exception):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    if os.getppid() == 1:  # the service died before the line above
+        os._exit(1)
+
+
 def _serve(conn: multiprocessing.connection.Connection, engine: Engine) -> None:
-    """A mapper process: answer requests `(op, key, *args)` with `("ok", value)` or
-    `("error", text)` until the pipe closes."""
+    """A mapper process: answer calls and map forwarded scans, in the order they come, until
+    the pipe closes."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops us by closing the pipe
+    _die_with_parent()
     mappers: dict[str, LocalMapper] = {}
+    leases: dict[str, _Lease] = {}
     while True:
         try:
-            op, key, *args = conn.recv()
+            message = conn.recv()
         except (EOFError, OSError):
             return
-        try:
-            value: Any = None
-            if op == "create":
-                mappers[key] = LocalMapper(engine, *args)
-            elif op == "drop":
-                mappers.pop(key, None)
-            elif key not in mappers:
-                raise KeyError(f"no mapper {key!r} in this process")
+        out: tuple[Any, ...]
+        if message[0] == "exit":
+            return
+        if message[0] == "scan":
+            _, key, payload = message
+            lease = leases.get(key)
+            if lease is None:  # cannot happen: the service forwards only under a lease
+                out = ("done", key, _flat(Done(False, None, None, -1, 0, "lost: no lease", 0.0)))
             else:
-                value = getattr(mappers[key], op)(*args)
-            reply: tuple[str, Any] = ("ok", value)
-        except Exception as err:  # reported to the caller, which logs it
-            reply = ("error", f"{type(err).__name__}: {err}")
+                try:
+                    out = ("done", key, _flat(lease.handle(payload)))
+                except Exception as err:
+                    out = ("done", key, _flat(Done(False, None, None, -1, 0, f"store: {err}", 0.0)))
+        else:
+            _, req, op, key, args = message
+            try:
+                value: Any = None
+                if op == "create":
+                    mappers[key] = LocalMapper(engine, *args)
+                elif op == "drop":
+                    mappers.pop(key, None)
+                    lease = leases.pop(key, None)
+                    if lease is not None:
+                        lease.close()
+                elif key not in mappers:
+                    raise KeyError(f"no mapper {key!r} in this process")
+                elif op == "delegate":
+                    old = leases.pop(key, None)
+                    if old is not None:
+                        old.close()
+                    leases[key] = _Lease(args[0], mappers[key])
+                elif op == "revoke":
+                    lease = leases.pop(key, None)
+                    value = lease.close() if lease is not None else None
+                else:
+                    value = getattr(mappers[key], op)(*args)
+                out = ("reply", req, "ok", value)
+            except Exception as err:  # reported to the caller, which logs it
+                out = ("reply", req, "error", f"{type(err).__name__}: {err}")
         try:
-            conn.send(reply)
+            conn.send(out)
         except (BrokenPipeError, OSError):
             return
 
 
-class MapperProcess:
-    """One worker process and its pipe; one request at a time (callers queue on a lock)."""
+OnDone = Callable[[Done], None]
 
-    def __init__(self, index: int, engine: Engine) -> None:
+
+class MapperProcess:
+    """One worker process and its pipe. Any thread may call or forward; one reader thread per
+    started process receives every answer, in the order the process sent them."""
+
+    def __init__(
+        self, index: int, engine: Engine, spawner: ThreadPoolExecutor | None = None
+    ) -> None:
         self.index = index
         self._engine = engine
-        self._lock = threading.Lock()
+        # Processes are started from one long-lived thread: the parent-death signal fires when
+        # the *thread* that started a process ends, and ingest threads come and go.
+        self._spawner = spawner
+        self._lock = threading.Lock()  # process lifecycle, pending calls, in-flight scans
+        self._send_lock = threading.Lock()
         self._process: multiprocessing.process.BaseProcess | None = None
         self._conn: multiprocessing.connection.Connection | None = None
+        self._calls: dict[int, Future[Any]] = {}
+        self._inflight: dict[str, deque[OnDone]] = {}
+        self._ids = itertools.count()
         self.generation = 0  # bumped at every (re)start: state made before it is gone
         self.mappers = 0  # sessions placed here (for placement only)
         self.restarts = 0
@@ -231,32 +406,106 @@ class MapperProcess:
         process = ctx.Process(
             target=_serve, args=(child, self._engine), name=f"mapper-{self.index}", daemon=True
         )
-        process.start()
+        if self._spawner is not None:
+            self._spawner.submit(process.start).result()
+        else:
+            process.start()
         child.close()
         self._process, self._conn = process, parent
         self.generation += 1
+        reader = threading.Thread(
+            target=self._read,
+            args=(parent, self.generation),
+            name=f"mapper-{self.index}-reader",
+            daemon=True,
+        )
+        reader.start()
         log.info("mapper process %d started (pid %s)", self.index, process.pid)
+
+    def _read(self, conn: multiprocessing.connection.Connection, generation: int) -> None:
+        """Deliver replies and `Done`s until the pipe ends; then fail whatever waited."""
+        while True:
+            try:
+                message = conn.recv()
+            except (EOFError, OSError):
+                break
+            if message[0] == "done":
+                _, key, flat = message
+                done = _unflat(flat)
+                with self._lock:
+                    waiting = self._inflight.get(key)
+                    on_done = waiting.popleft() if waiting else None
+                if on_done is not None:
+                    try:
+                        on_done(done)
+                    except Exception:  # the reader must go on: other sessions wait on it
+                        log.exception("applying a mapped scan of %s failed", key)
+            else:
+                _, req, status, value = message
+                with self._lock:
+                    future = self._calls.pop(req, None)
+                if future is not None:
+                    if status == "ok":
+                        future.set_result(value)
+                    else:
+                        future.set_exception(MapperError(str(value)))
+        self._lost(generation)
+
+    def _lost(self, generation: int) -> None:
+        with self._lock:
+            if generation != self.generation:
+                return
+            calls, self._calls = self._calls, {}
+            inflight, self._inflight = self._inflight, {}
+        for future in calls.values():
+            future.set_exception(MapperLostError(f"mapper process {self.index} died"))
+        for waiting in inflight.values():
+            for on_done in waiting:
+                with contextlib.suppress(Exception):
+                    on_done(LOST)
+
+    def _alive_conn(self, generation: int, op: str) -> multiprocessing.connection.Connection:
+        """The pipe of the running process, started again if it died (`_lock` held)."""
+        if self._closed:
+            raise MapperError("the service is shutting down")
+        if self._conn is None or self._process is None or not self._process.is_alive():
+            self._restart()
+        if op != "create" and generation != self.generation:
+            raise MapperLostError(f"mapper process {self.index} was restarted")
+        assert self._conn is not None
+        return self._conn
 
     def call(self, generation: int, op: str, key: str, *args: Any) -> Any:
         """Run `op` on mapper `key`; `MapperLostError` if the process restarted since then."""
+        future: Future[Any] = Future()
         with self._lock:
-            if self._closed:
-                raise MapperError("the service is shutting down")
-            if self._conn is None or self._process is None or not self._process.is_alive():
-                self._restart()
-            if op != "create" and generation != self.generation:
-                raise MapperLostError(f"mapper process {self.index} was restarted")
-            assert self._conn is not None
-            try:
-                self._conn.send((op, key, *args))
-                status, value = self._conn.recv()
-            except (EOFError, OSError) as err:
-                self._discard()
-                detail = err or "pipe closed"
-                raise MapperLostError(f"mapper process {self.index} died: {detail}") from err
-        if status != "ok":
-            raise MapperError(str(value))
-        return value
+            conn = self._alive_conn(generation, op)
+            req = next(self._ids)
+            self._calls[req] = future
+        try:
+            with self._send_lock:
+                conn.send(("call", req, op, key, args))
+        except (OSError, ValueError) as err:
+            with self._lock:
+                self._calls.pop(req, None)
+            raise MapperLostError(f"mapper process {self.index} died: {err}") from err
+        return future.result()
+
+    def forward(self, generation: int, key: str, payload: bytes, on_done: OnDone) -> None:
+        """Send a scan to mapper `key`'s lease; `on_done(Done)` runs on the reader thread
+        (with `LOST` if the process dies first)."""
+        with self._lock:
+            conn = self._alive_conn(generation, "scan")
+            self._inflight.setdefault(key, deque()).append(on_done)
+        try:
+            with self._send_lock:
+                conn.send_bytes(_pickled_scan(key, payload))
+        except (OSError, ValueError) as err:
+            with self._lock:
+                waiting = self._inflight.get(key)
+                if waiting and on_done in waiting:
+                    waiting.remove(on_done)
+            raise MapperLostError(f"mapper process {self.index} died: {err}") from err
 
     def _restart(self) -> None:
         if self._process is not None:
@@ -278,6 +527,14 @@ class MapperProcess:
                 self._process.kill()
             self._process.join(timeout=5)
         self._conn, self._process = None, None
+        calls, self._calls = self._calls, {}
+        inflight, self._inflight = self._inflight, {}
+        for future in calls.values():
+            future.set_exception(MapperLostError(f"mapper process {self.index} was restarted"))
+        for waiting in inflight.values():
+            for on_done in waiting:
+                with contextlib.suppress(Exception):
+                    on_done(LOST)
 
     @property
     def pid(self) -> int | None:
@@ -286,19 +543,31 @@ class MapperProcess:
     def close(self) -> None:
         with self._lock:
             self._closed = True
-            if self._conn is not None:
-                self._conn.close()  # the process sees EOF and returns
-            if self._process is not None:
-                self._process.join(timeout=10)
-                if self._process.is_alive():
-                    log.warning("mapper process %d did not stop; killing it", self.index)
-                    self._process.kill()
-                    self._process.join(timeout=5)
+            conn, process = self._conn, self._process
             self._conn, self._process = None, None
+        if conn is not None:
+            # A close alone is not seen while our reader thread still blocks on the pipe.
+            with contextlib.suppress(OSError, ValueError), self._send_lock:
+                conn.send(("exit",))
+            conn.close()
+        if process is not None:
+            process.join(timeout=10)
+            if process.is_alive():
+                log.warning("mapper process %d did not stop; killing it", self.index)
+                process.kill()
+                process.join(timeout=5)
+
+
+def _pickled_scan(key: str, payload: bytes) -> bytes:
+    from multiprocessing.reduction import ForkingPickler  # noqa: PLC0415
+
+    return bytes(ForkingPickler.dumps(("scan", key, payload)))
 
 
 class RemoteMapper:
     """A session's mapper living in a `MapperProcess`."""
+
+    delegates = True  # can record the session's scans and poses itself (a lease)
 
     def __init__(
         self, proc: MapperProcess, key: str, use_odometry: bool, resolution_m: float
@@ -317,6 +586,19 @@ class RemoteMapper:
         if payload is not None:
             return MappedScan(*self._call("map_payload", payload))
         return MappedScan(*self._call("map_scan", scan))
+
+    def delegate(self, spec: LeaseSpec) -> None:
+        """Hand the session's recording to the process: it records and maps what `forward`
+        sends until `revoke`."""
+        self._call("delegate", spec)
+
+    def forward(self, payload: bytes, on_done: OnDone) -> None:
+        self._proc.forward(self._generation, self._key, payload, on_done)
+
+    def revoke(self) -> int | None:
+        """Take the recording back (fsynced and closed); where its intact records end."""
+        end: int | None = self._call("revoke")
+        return end
 
     def reset(self) -> None:
         self._call("reset")
@@ -341,7 +623,8 @@ class MapperPool:
     """K mapper processes; each new session goes to the process with the fewest sessions."""
 
     def __init__(self, processes: int, engine: Engine) -> None:
-        self._procs = [MapperProcess(i, engine) for i in range(processes)]
+        self._spawner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-spawn")
+        self._procs = [MapperProcess(i, engine, self._spawner) for i in range(processes)]
         self._lock = threading.Lock()
 
     def start(self) -> None:
@@ -369,3 +652,4 @@ class MapperPool:
     def close(self) -> None:
         for proc in self._procs:
             proc.close()
+        self._spawner.shutdown(wait=False)

@@ -17,7 +17,9 @@ cannot be restored at all), with the records and bytes lost.
 from __future__ import annotations
 
 import bisect
+import contextlib
 import errno
+import functools
 import logging
 import math
 import threading
@@ -44,7 +46,6 @@ from clients.wire import (
     ROBOT_ID_PATTERN,
     DecodeError,
     Pose,
-    PoseFlag,
     Scan,
     decode_pose,
     decode_scan,
@@ -58,13 +59,16 @@ from service.app.errors import (
     UnavailableError,
 )
 from service.app.mapper import (
+    Done,
     Engine,
+    LeaseSpec,
     MappedScan,
     Mapper,
     MapperError,
     MapperFactory,
     MapperLostError,
     local_mapper_factory,
+    make_pose,
 )
 from service.app.store import (
     DataDir,
@@ -139,10 +143,17 @@ class Ingested(NamedTuple):
     accepted: bool
     pose: Pose | None  # None when not accepted, when held during a restore, or estimator failed
     pose_bytes: bytes | None  # `encode_pose(pose)`, as recorded
+    # Not accepted because it could not be recorded ("store: ...") or its mapper process died
+    # before recording it ("lost: ..."); None otherwise.
+    error: str | None = None
 
 
 _NOT_ACCEPTED: Final = Ingested(False, None, None)
 _HELD: Final = Ingested(True, None, None)
+# The scan went to the session's mapper process; the answer comes to `on_done` later.
+DEFERRED: Final = Ingested(True, None, None)
+
+OnIngested = Callable[[Ingested], None]
 
 
 class _CancelledError(Exception):
@@ -184,6 +195,13 @@ class MappingSession:
         self._damage = DamageSummary()
         self._broken = False  # `damaged`: files that cannot be restored at all
         self._cancel = threading.Event()
+        # The recording is leased to the session's mapper process (mapper.py): while it is,
+        # the mapper's reader thread applies each scan's answer (`_done`), the only writer of
+        # the counters and the trajectory then; control operations take the lease back first.
+        self._leased = False
+        self._lost = False  # the mapper process died while it held the lease: rebuild first
+        self._checkpoint_due = False
+        self.fsync_each = store._fsync_each
         if not restoring:
             self._mapper = make_mapper(meta.id, meta.use_odometry, meta.resolution_m)
 
@@ -230,18 +248,24 @@ class MappingSession:
             raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
         if self._broken:
             raise ConflictError(f"session {self.id} has damaged files (see mapping-service fsck)")
+        if self._lost:
+            self._recover()
         assert self._mapper is not None
         return self._mapper
 
     # -- the hot path (ingest worker) ---------------------------------------------------------
 
-    def ingest(self, payload: bytes, scan: Scan) -> Ingested:
+    def ingest(self, payload: bytes, scan: Scan, on_done: OnIngested | None = None) -> Ingested:
         """Record, estimate and map one validated scan.
 
         Not accepted, and nothing recorded, when the session is no longer active. An accepted
         scan has no pose only if the estimator failed on it, or if it is held until the
         session's restore ends. The pose comes with its wire encoding, the bytes just recorded,
         so that publishing does not encode it again.
+
+        With `on_done` and a mapper process, the scan is forwarded to the process, which
+        records and maps it, and `DEFERRED` is returned: `on_done(Ingested)` runs later on the
+        mapper's reader thread, after the counters and the trajectory show the scan.
         """
         with self.lock:
             if not self.is_active:
@@ -252,7 +276,104 @@ class MappingSession:
                     self.held_dropped += 1
                 self._held.append((payload, scan))
                 return _HELD
-            return self._ingest_locked(payload, scan)
+            if self._lost:
+                self._recover()
+            mapper = self._mapper
+            if on_done is None or mapper is None or not getattr(mapper, "delegates", False):
+                return self._ingest_locked(payload, scan)
+            if self._checkpoint_due:
+                self._revoke()
+                self._write_checkpoint()
+            try:
+                if not self._leased:
+                    self._delegate()
+                mapper.forward(payload, functools.partial(self._done, on_done))  # type: ignore[attr-defined]
+            except MapperLostError as err:
+                log.error("session %s: %s; rebuilding it from the recording", self.id, err)
+                self._lost = True
+                self._recover()
+                return self._ingest_locked(payload, scan)
+            return DEFERRED
+
+    # -- the lease: the per-scan path in the mapper process ------------------------------------
+
+    def _delegate(self) -> None:
+        """Lease the recording to the mapper process (lock held)."""
+        path, end = self._store.lease_out()
+        spec = LeaseSpec(
+            session_id=self.id,
+            robot_id=self.robot_id,
+            path=str(path),
+            end_offset=end,
+            next_seq=self._poses[-1].seq + 1 if self._poses else 0,
+            fsync_each=self.fsync_each,
+        )
+        try:
+            self._mapper.delegate(spec)  # type: ignore[union-attr]
+        except BaseException:
+            self._store.lease_back(None)
+            raise
+        self._leased = True
+
+    def _revoke(self, *, recover: bool = True) -> None:
+        """Take the recording back from the mapper process (lock held): every scan forwarded
+        before has been applied when this returns. A process that died leaves the session
+        `_lost`: rebuilt from the recording now (`recover`) or at the next use."""
+        if not self._leased:
+            return
+        self._leased = False
+        try:
+            end = self._mapper.revoke()  # type: ignore[union-attr]
+        except MapperError as err:
+            self._store.lease_back(None)
+            if not isinstance(err, MapperLostError):
+                raise
+            self._lost = True
+            if recover:
+                log.error("session %s: %s; rebuilding it from the recording", self.id, err)
+                self._recover()
+            return
+        self._store.lease_back(end)
+
+    def _done(self, on_done: OnIngested, done: Done) -> None:
+        """A forwarded scan's answer, on the mapper's reader thread (no session lock: a
+        control operation may hold it while it waits for the lease back)."""
+        if not done.recorded:
+            if done.error is not None and done.error.startswith("lost"):
+                self._lost = True
+            on_done(Ingested(False, None, None, done.error or "lost"))
+            return
+        self._store.leased_append()
+        self._records_tail += 1
+        self.scans_accepted += 1
+        pose: Pose | None = None
+        if done.mapped is not None:
+            pose = self._pose_from_mapped(done.mapped, done.stamp_ns, done.seq)
+            self._records_tail += 1
+            self._poses.append(pose)
+        elif done.error is not None and done.error.startswith("estimator"):
+            self._note_estimator_error(done.seq, done.error)
+        if self.scans_accepted - self._checkpoint_scans >= self.checkpoint_every_scans:
+            self._checkpoint_due = True  # written before the next scan is forwarded
+        on_done(Ingested(True, pose, done.pose_bytes, done.error if pose is None else None))
+
+    def _recover(self) -> None:
+        """Rebuild the session from its checkpoint and recording after its mapper process
+        died (lock held): the recording is the truth, whatever answers were lost with it."""
+        damage = self._damage
+        self._leased = False
+        self._store.lease_back(None)
+        self._poses = []
+        self.scans_accepted = 0
+        self._records_tail = 0
+        self._ckpt_segment = 0
+        self._checkpoint_scans = 0
+        self._checkpoint_due = False
+        self._replay()
+        self._damage = damage  # the replay found the same damage again
+        self.map_revision += 1
+        self._lost = False
+        log.info("session %s: rebuilt after its mapper process was lost", self.id)
 
     def _ingest_locked(self, payload: bytes, scan: Scan) -> Ingested:
         self._store.append(payload)  # durable before it counts
@@ -280,34 +401,34 @@ class MappingSession:
 
     def _estimate(self, scan: Scan) -> Pose | None:
         """Run estimator and grid on `scan` (lock held). None if the estimator failed."""
+        seq = self._poses[-1].seq + 1 if self._poses else 0  # = len unless records were lost
         try:
             mapped = self._map(scan, self._payload)
-        except Exception:
+        except Exception as err:
             # The estimator promises not to raise on bad data; if it does anyway, the scan stays
             # recorded (a replay meets the same failure) and the session carries on.
-            self.estimator_errors += 1
-            if self.estimator_errors == 1 or math.log2(self.estimator_errors).is_integer():
-                log.exception(
-                    "session %s: estimator failed on scan %d (%d failures so far)",
-                    self.id,
-                    scan.seq,
-                    self.estimator_errors,
-                )
+            self._note_estimator_error(scan.seq, repr(err), exc_info=True)
             return None
+        return self._pose_from_mapped(mapped, scan.stamp_ns, seq)
+
+    def _pose_from_mapped(self, mapped: MappedScan, stamp_ns: int, seq: int) -> Pose:
+        """The pose of a mapped scan, and the session's bookkeeping of the answer (both
+        transports: the sync path under the lock, a lease's answers on its reader thread)."""
         if mapped.is_keyframe:
             self.map_revision += 1
-        return Pose(
-            session_id=self.id,
-            robot_id=self.robot_id,
-            seq=self._poses[-1].seq + 1 if self._poses else 0,  # = len unless records were lost
-            stamp_ns=scan.stamp_ns,
-            x_m=mapped.x_m,
-            y_m=mapped.y_m,
-            theta_rad=mapped.theta_rad,
-            quality=min(max(mapped.quality, 0.0), 1.0),
-            flags=PoseFlag(mapped.flags),
-            covariance=mapped.covariance if len(mapped.covariance) == 9 else None,
-        )
+        return make_pose(mapped, self.id, self.robot_id, seq, stamp_ns)
+
+    def _note_estimator_error(self, seq: int, detail: str, *, exc_info: bool = False) -> None:
+        self.estimator_errors += 1
+        if self.estimator_errors == 1 or math.log2(self.estimator_errors).is_integer():
+            log.error(
+                "session %s: estimator failed on scan %d (%d failures so far): %s",
+                self.id,
+                seq,
+                self.estimator_errors,
+                detail,
+                exc_info=exc_info,
+            )
 
     def _map(self, scan: Scan, payload: bytes | None) -> MappedScan:
         """The mapper's answer; a lost mapper (its process died) is rebuilt first (lock held)."""
@@ -385,6 +506,7 @@ class MappingSession:
         except (OSError, MapperError, ValueError, TypeError) as err:
             log.warning("session %s: checkpoint not written: %s", self.id, err)
         self._checkpoint_scans = self.scans_accepted
+        self._checkpoint_due = False
 
     def _drop_old_checkpoints(self, newest: int) -> None:
         """Keep the newest checkpoint and the newest other one that passes its checksum (the
@@ -629,6 +751,7 @@ class MappingSession:
     def stop(self) -> None:
         with self.lock:
             self._ready()
+            self._revoke()
             if self.state == "active":
                 self._checkpoint_if_behind()
                 self._store.close_writer()
@@ -643,6 +766,8 @@ class MappingSession:
         """Forget the map and the trajectory; the next scan starts a new map frame."""
         with self.lock:
             mapper = self._ready()
+            self._revoke()
+            mapper = self._ready()  # rebuilt if the revoke found it lost
             self._store.new_epoch()
             if self.state != "active":
                 self._store.close_writer()
@@ -658,6 +783,7 @@ class MappingSession:
         self._cancel.set()
         with self.lock:
             self._deleted = True
+            self._leased = False  # dropping the mapper closes the lease in its process
             if self._mapper is not None:
                 self._mapper.close()
             self._store.delete(trash_dir)
@@ -672,6 +798,7 @@ class MappingSession:
             return False
         try:
             if self._store.writer_open and self._store.idle_for_s() >= idle_s:
+                self._revoke()
                 self._store.close_writer()
                 return True
             return False
@@ -704,7 +831,9 @@ class MappingSession:
     def close(self) -> None:
         self._cancel.set()
         with self.lock:
-            if self.is_active and not self._restoring:
+            with contextlib.suppress(MapperError):  # a process gone: the recording stays
+                self._revoke(recover=False)
+            if self.is_active and not self._restoring and not self._lost:
                 self._checkpoint_if_behind()
             self._store.close_writer()
             if self._mapper is not None:
@@ -796,11 +925,19 @@ class MappingSession:
     def _image(self) -> Any:
         """The grid snapshot, cached per map revision (lock held): the live page polls the
         map several times a second while it only changes at keyframes."""
-        mapper = self._mapper
-        if self._restoring or mapper is None:
+        if self._restoring or self._mapper is None:
             raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
+        if self._lost:
+            self._recover()
         if self._image_cache is None or self._image_cache[1] != self.map_revision:
-            self._image_cache = (mapper.snapshot(), self.map_revision)
+            try:
+                image = self._mapper.snapshot()
+            except MapperLostError as err:
+                log.error("session %s: %s; rebuilding it from the recording", self.id, err)
+                self._lost = True
+                self._recover()
+                image = self._mapper.snapshot()
+            self._image_cache = (image, self.map_revision)
         return self._image_cache[0]
 
     def map_image(self) -> MapSnapshot:

@@ -174,6 +174,8 @@ class SessionStore:
         self.segment = 0  # index of the segment appends go to
         self._known_end: tuple[int, int] | None = None  # (segment, byte length) we wrote
         self._last_append = time.monotonic()
+        # Leased to a mapper process (`lease_out`): it appends, this object only fsyncs.
+        self.leased = False
 
     # -- lifecycle -----------------------------------------------------------------------
 
@@ -296,6 +298,8 @@ class SessionStore:
 
     def append(self, payload: bytes) -> None:
         """Append one wire message; it is in the kernel (survives kill -9) when this returns."""
+        if self.leased:
+            raise StoreError(f"session {self.meta.id}: the recording is leased to a mapper")
         writer = self._writer
         if writer is None:
             if self.meta.state != "active":
@@ -312,7 +316,7 @@ class SessionStore:
     def sync(self) -> None:
         """fsync the recording if anything was appended since the last sync (any thread)."""
         with self._io_lock:
-            if not self._dirty or self._writer is None:
+            if not self._dirty or (self._writer is None and not self.leased):
                 return
             self._dirty = False
             # A separate descriptor: fsync flushes the file, whichever descriptor wrote it, and
@@ -323,12 +327,36 @@ class SessionStore:
         finally:
             os.close(fd)
 
+    # -- the lease (a mapper process appends; docs/service.md, "Mapper processes") ---------------
+
+    def lease_out(self) -> tuple[Path, int | None]:
+        """Close the writer and hand the current segment over: its path, and where its intact
+        records end if this object knows (else the lessee reads the file to find out)."""
+        with self._io_lock:
+            self._close_writer_locked()
+            self.leased = True
+            end = self._known_end
+        return self.recording_path, end[1] if end is not None and end[0] == self.segment else None
+
+    def lease_back(self, end_offset: int | None) -> None:
+        """The lessee closed (and fsynced) the segment at `end_offset` (None: unknown, the
+        next writer reads the file)."""
+        with self._io_lock:
+            self.leased = False
+            self._dirty = False
+            self._known_end = (self.segment, end_offset) if end_offset is not None else None
+
+    def leased_append(self) -> None:
+        """The lessee appended: the next group commit fsyncs the file, the idle clock restarts."""
+        self._dirty = True
+        self._last_append = time.monotonic()
+
     def idle_for_s(self) -> float:
         return time.monotonic() - self._last_append
 
     @property
     def writer_open(self) -> bool:
-        return self._writer is not None
+        return self._writer is not None or self.leased
 
     # -- state changes ---------------------------------------------------------------------
 

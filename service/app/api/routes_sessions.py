@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+import asyncio
+from collections.abc import Callable
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Path, Query, Response
 from fastapi.responses import PlainTextResponse
 from starlette.responses import StreamingResponse
+from starlette.types import Receive, Scope, Send
 
 from clients.wire import Pose
 from service.app import render
@@ -24,6 +26,7 @@ from service.app.api.schemas import (
     errors,
 )
 from service.app.errors import ConflictError
+from service.app.fanout import PoseStream
 from service.app.sessions import MappingSession, SessionManager
 
 router = APIRouter(prefix="/sessions", tags=["sessions"], route_class=JsonBodyRoute)
@@ -307,20 +310,58 @@ async def stream_poses(
         stream.skip = (last.seq, last.stamp_ns)
         first = sse_pose_frame(last)
 
-    async def frames() -> AsyncIterator[bytes]:
-        try:
-            if first:
-                yield first
-            while (chunk := await stream.next_chunk()) is not None:
-                yield chunk
-        finally:
-            fanout.close_stream(stream)
+    return PoseStreamResponse(stream, first, fanout.close_stream)
 
-    return StreamingResponse(
-        frames(),
-        media_type="text/event-stream",
-        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
-    )
+
+class PoseStreamResponse(StreamingResponse):
+    """The pose stream as a bare ASGI loop: one `send` per chunk.
+
+    `StreamingResponse` runs an async generator inside an anyio task group for every response
+    and goes through both per chunk; with 1,000 streams that machinery was most of the HTTP
+    loop's work, on the process (and GIL) that also receives every scan. A disconnect is
+    noticed by a task waiting on `receive()`, which ends the stream.
+    """
+
+    def __init__(
+        self, stream: PoseStream, first: bytes, on_close: Callable[[PoseStream], None]
+    ) -> None:
+        super().__init__(
+            iter(()),  # not used: __call__ writes the stream's chunks itself
+            media_type="text/event-stream",
+            headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+        )
+        self._stream = stream
+        self._first = first
+        self._on_close = on_close
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        stream = self._stream
+
+        async def watch() -> None:
+            while (await receive())["type"] != "http.disconnect":
+                pass
+            stream.end()
+
+        watcher = asyncio.ensure_future(watch())
+        try:
+            await send(
+                {
+                    "type": "http.response.start",
+                    "status": self.status_code,
+                    "headers": self.raw_headers,
+                }
+            )
+            chunk: bytes | None = self._first
+            while chunk is not None:
+                if chunk:
+                    await send({"type": "http.response.body", "body": chunk, "more_body": True})
+                chunk = await stream.next_chunk()
+            await send({"type": "http.response.body", "body": b"", "more_body": False})
+        except OSError:  # the connection went away under the write
+            pass
+        finally:
+            watcher.cancel()
+            self._on_close(stream)
 
 
 __all__ = ["SessionManager", "get_sessions", "router"]

@@ -6,8 +6,10 @@ before the fix (see the report of branch durability16).
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
+import os
 import pickle
 import resource
 import shutil
@@ -310,22 +312,37 @@ def test_create_at_the_descriptor_limit_is_a_clean_503(
     assert client.post("/sessions", json={"robot_id": "r1"}).status_code == 201
 
 
+def _open_anywhere(runtime: MappingRuntime, path: Path) -> bool:
+    """`path` is open in the service's process or one of its mapper processes."""
+    pids = [os.getpid(), *(runtime.mapper_pool.pids if runtime.mapper_pool else [])]
+    for pid in pids:
+        for fd in Path(f"/proc/{pid}/fd").iterdir():
+            with contextlib.suppress(OSError):
+                if os.readlink(fd) == str(path):
+                    return True
+    return False
+
+
+@pytest.mark.parametrize("mappers", [0, 2], ids=["in-process", "mapper-processes"])
 def test_idle_recordings_are_closed_and_reopened(
-    tmp_path: Path, runtime_factory: RuntimeFactory
+    tmp_path: Path, runtime_factory: RuntimeFactory, mappers: int
 ) -> None:
-    runtime = runtime_factory(tmp_path / "data")
+    """Also with mapper processes, which hold the recording while they map (a lease)."""
+    runtime = runtime_factory(tmp_path / "data", mapper_processes=mappers)
     session = runtime.sessions.create("r1", 0.05, True)
     robot = SimRobot("r1")
     assert not session.writer_open  # opened by the first scan, not by the create
     feed(runtime, robot, 3)
     assert session.writer_open
+    assert _open_anywhere(runtime, session.recording_path())
     assert runtime.sessions.close_idle(0.0) == 1
     assert not session.writer_open
+    assert not _open_anywhere(runtime, session.recording_path())
     feed(runtime, robot, 3)  # reopened on demand, appended after what is there
     assert session.writer_open
     expected = session.trajectory()
     runtime.close()
-    again = runtime_factory(tmp_path / "data").sessions.get(session.id)
+    again = runtime_factory(tmp_path / "data", mapper_processes=mappers).sessions.get(session.id)
     assert again.trajectory() == expected
     assert again.status == "ok"
 

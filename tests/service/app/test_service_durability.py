@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import io
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
 import numpy as np
+import psutil
 import pytest
 import zenoh
 from PIL import Image
@@ -26,35 +28,58 @@ from clients.recording import RecordingWriter, iter_raw_records
 from clients.wire import Pose, Scan
 from service.app import checkpoint
 from service.app.errors import StoreError
-from service.app.sessions import MappingSession
+from service.app.sessions import MappingSession, SessionInfo
 
 
 def recording_of(session: MappingSession) -> Path:
     return session._store.recording_path
 
 
-def assert_same_session(a: MappingSession, b: MappingSession) -> None:
-    ia, ib = a.info(), b.info()
-    assert ia == ib
+@dataclass(frozen=True)
+class Seen:
+    """What a session showed (taken before its runtime closes: with mapper processes, a
+    closed runtime's sessions can no longer render their maps)."""
+
+    info: SessionInfo
+    trajectory: list[Pose]
+    occupancy: np.ndarray
+
+
+def seen(session: MappingSession | Seen) -> Seen:
+    if isinstance(session, Seen):
+        return session
+    return Seen(session.info(), session.trajectory(), session.map_snapshot().image.occupancy)
+
+
+def assert_same_session(a: MappingSession | Seen, b: MappingSession | Seen) -> None:
+    assert seen(a).info == seen(b).info
     assert_same_session_data(a, b)
 
 
-def assert_same_session_data(a: MappingSession, b: MappingSession) -> None:
+def assert_same_session_data(a: MappingSession | Seen, b: MappingSession | Seen) -> None:
     """Counters, trajectory and map equal (the restore status may differ)."""
-    ia, ib = a.info(), b.info()
+    sa, sb = seen(a), seen(b)
+    ia, ib = sa.info, sb.info
     assert (ia.scans_accepted, ia.poses, ia.last_pose) == (
         ib.scans_accepted,
         ib.poses,
         ib.last_pose,
     )
-    assert a.trajectory() == b.trajectory()
-    ma, mb = a.map_snapshot(), b.map_snapshot()
-    np.testing.assert_array_equal(ma.image.occupancy, mb.image.occupancy)
+    assert sa.trajectory == sb.trajectory
+    np.testing.assert_array_equal(sa.occupancy, sb.occupancy)
 
 
-def test_clean_restart_restores_everything(tmp_path: Path, runtime_factory: RuntimeFactory) -> None:
+# The same guarantees with the estimators in mapper processes (`--mapper-processes`), which
+# then hold a lease of each active session's recording: they record scans and poses themselves.
+MAPPERS = pytest.mark.parametrize("mappers", [0, 2], ids=["in-process", "mapper-processes"])
+
+
+@MAPPERS
+def test_clean_restart_restores_everything(
+    tmp_path: Path, runtime_factory: RuntimeFactory, mappers: int
+) -> None:
     data = tmp_path / "data"
-    first = runtime_factory(data)
+    first = runtime_factory(data, mapper_processes=mappers)
     active = first.sessions.create("r1", 0.05, True)
     robot = SimRobot("r1")
     feed(first, robot, 30)
@@ -64,11 +89,12 @@ def test_clean_restart_restores_everything(tmp_path: Path, runtime_factory: Runt
     saved = first.sessions.save(active.id)
     gone = first.sessions.create("r3", 0.05, True)
     first.sessions.delete(gone.id)
+    was_active, was_stopped = seen(active), seen(stopped)
     first.close()
 
-    second = runtime_factory(data)
-    assert_same_session(active, second.sessions.get(active.id))
-    assert_same_session(stopped, second.sessions.get(stopped.id))
+    second = runtime_factory(data, mapper_processes=mappers)
+    assert_same_session(was_active, second.sessions.get(active.id))
+    assert_same_session(was_stopped, second.sessions.get(stopped.id))
     assert second.sessions.get(stopped.id).state == "stopped"
     assert second.sessions.active_for("r1") is not None
     assert second.sessions.active_for("r2") is None
@@ -81,12 +107,13 @@ def test_clean_restart_restores_everything(tmp_path: Path, runtime_factory: Runt
     assert [p.seq for p in restored.trajectory()] == list(range(33))
 
 
+@MAPPERS
 def test_crash_image_with_torn_tail_and_missing_pose(
-    tmp_path: Path, runtime_factory: RuntimeFactory
+    tmp_path: Path, runtime_factory: RuntimeFactory, mappers: int
 ) -> None:
     """What kill -9 leaves: every flushed record, maybe half a record, maybe a scan w/o pose."""
     data = tmp_path / "data"
-    live = runtime_factory(data)
+    live = runtime_factory(data, mapper_processes=mappers)
     session = live.sessions.create("r1", 0.05, True)
     robot = SimRobot("r1")
     feed(live, robot, 25)
@@ -100,7 +127,7 @@ def test_crash_image_with_torn_tail_and_missing_pose(
     with copy_rec.open("ab") as f:  # and half a record after it
         f.write(b"\x40\x00\x00\x00\x12\x34")
 
-    restored = runtime_factory(crash).sessions.get(session.id)
+    restored = runtime_factory(crash, mapper_processes=mappers).sessions.get(session.id)
     info = restored.info()
     assert info.scans_accepted == 26
     assert info.poses == 26
@@ -109,18 +136,20 @@ def test_crash_image_with_torn_tail_and_missing_pose(
     assert kinds == ["scan", "pose"] * 26  # torn tail cut, missing pose recorded
 
 
+@MAPPERS
 def test_restart_from_checkpoint_replays_only_the_tail(
-    tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch
+    tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch, mappers: int
 ) -> None:
     """A checkpoint every 10 scans: a crash after 25 re-estimates only the last 5."""
     monkeypatch.setattr(MappingSession, "checkpoint_every_scans", 10)
     data = tmp_path / "data"
-    live = runtime_factory(data)
+    live = runtime_factory(data, mapper_processes=mappers)
     session = live.sessions.create("r1", 0.05, True)
     robot = SimRobot("r1")
     feed(live, robot, 25)
     crash = tmp_path / "crash"
     shutil.copytree(data, crash)  # a kill -9 image: checkpoint at scan 20, 5 scans after it
+    expected = seen(session)
     live.close()
 
     estimated: list[int] = []
@@ -133,7 +162,7 @@ def test_restart_from_checkpoint_replays_only_the_tail(
     monkeypatch.setattr(MappingSession, "_estimate", counting)
     second = runtime_factory(crash)
     assert len(estimated) == 5
-    assert_same_session(session, second.sessions.get(session.id))
+    assert_same_session(expected, second.sessions.get(session.id))
     second.close()  # a clean shutdown checkpoints the rest
     estimated.clear()
     runtime_factory(crash).close()
@@ -146,7 +175,7 @@ def test_restart_from_checkpoint_replays_only_the_tail(
     newest.write_bytes(bytes(damaged))
     third = runtime_factory(crash)
     restored = third.sessions.get(session.id)
-    assert_same_session_data(session, restored)
+    assert_same_session_data(expected, restored)
     assert len(estimated) == 5  # from the checkpoint at scan 20
     assert restored.status == "degraded"
     assert restored.damage.checkpoints_rejected == 1
@@ -161,21 +190,22 @@ def test_restart_from_checkpoint_replays_only_the_tail(
     newest.write_bytes(checkpoint.encode(older_header, b"not a state"))  # names another segment
     (folder / "checkpoint.pickle").write_bytes(b"an old pickle: never loaded")
     fourth = runtime_factory(crash)
-    assert_same_session_data(session, fourth.sessions.get(session.id))
+    assert_same_session_data(expected, fourth.sessions.get(session.id))
     assert len(estimated) == 25
     fourth.close()
     estimated.clear()
     for path in folder.glob("checkpoint-*.mck"):
         path.write_bytes(b"not a checkpoint")
-    assert_same_session_data(session, runtime_factory(crash).sessions.get(session.id))
+    assert_same_session_data(expected, runtime_factory(crash).sessions.get(session.id))
     assert len(estimated) == 25
 
 
+@MAPPERS
 def test_reset_survives_restart_and_stale_epochs_go(
-    tmp_path: Path, runtime_factory: RuntimeFactory
+    tmp_path: Path, runtime_factory: RuntimeFactory, mappers: int
 ) -> None:
     data = tmp_path / "data"
-    first = runtime_factory(data)
+    first = runtime_factory(data, mapper_processes=mappers)
     session = first.sessions.create("r1", 0.05, True)
     robot = SimRobot("r1")
     feed(first, robot, 10)
@@ -201,10 +231,11 @@ def test_one_service_per_data_dir(tmp_path: Path, runtime_factory: RuntimeFactor
         runtime_factory(tmp_path / "data")
 
 
+@MAPPERS
 def test_group_commit_fsyncs_only_changed_recordings(
-    runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch
+    runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch, mappers: int
 ) -> None:
-    runtime = runtime_factory()
+    runtime = runtime_factory(mapper_processes=mappers)
     runtime._stop.set()  # park the periodic syncer first: it would race the counting below
     session = runtime.sessions.create("r1", 0.05, True)
     runtime.sessions.create("idle", 0.05, True)
@@ -226,14 +257,17 @@ def test_group_commit_fsyncs_only_changed_recordings(
 
 @pytest.mark.slow
 @pytest.mark.timeout(90)
-def test_kill_9_right_after_an_acknowledgement_loses_nothing(tmp_path: Path) -> None:
+@MAPPERS
+def test_kill_9_right_after_an_acknowledgement_loses_nothing(tmp_path: Path, mappers: int) -> None:
     """Every scan and pose the service has acknowledged (in its counters and trajectory) was
     written to the kernel before it showed: kill -9 at that moment, with nothing else in flight,
     and a restart has all of them, identical. Deterministic: which records are acknowledged does
-    not depend on timing, so a writer that leaves them in a user-space buffer fails every run."""
+    not depend on timing, so a writer that leaves them in a user-space buffer fails every run.
+    With mapper processes (which then write the recording), they die with the service."""
     data = tmp_path / "data"
     token = "k9-token"
-    svc = ServiceProc(data, token=token)
+    args = ["--mapper-processes", str(mappers)]
+    svc = ServiceProc(data, token=token, extra_args=args)
     svc.start()
     scans = 60
     try:
@@ -260,11 +294,17 @@ def test_kill_9_right_after_an_acknowledgement_loses_nothing(tmp_path: Path) -> 
         assert before["scans_accepted"] == before["poses"] == scans
         assert isinstance(traj_before, list)
         assert len(traj_before) == scans
+        assert svc.proc is not None
+        children = [psutil.Process(c.pid) for c in psutil.Process(svc.proc.pid).children()]
+        assert len(children) >= mappers
         svc.kill9()  # right after the acknowledgement
+        # No orphan mapper process goes on writing the recording the restart replays.
+        _gone, alive = psutil.wait_procs(children, timeout=10)
+        assert alive == []
     finally:
         svc.stop()
 
-    again = ServiceProc(data, token=token)
+    again = ServiceProc(data, token=token, extra_args=args)
     again.start()
     try:
         after = again.json(f"/sessions/{sid}")

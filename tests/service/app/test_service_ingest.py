@@ -302,6 +302,45 @@ def test_slow_stream_subscriber_loses_oldest_and_never_delays_others() -> None:
     assert encoded == list(range(total))  # once per pose, not once per stream
 
 
+def test_stream_fanout_work_per_pose_does_not_grow_with_the_streams(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """200 streams of one session: each pose is encoded once and appended once to the
+    session's shared frame log (not once per stream), and every stream gets every pose."""
+    from service.app.fanout import FrameLog
+
+    appends: list[int] = []
+    real_append = FrameLog.append
+
+    def counting(self: FrameLog, key: tuple[int, int], frame: bytes) -> None:
+        appends.append(key[0])
+        real_append(self, key, frame)
+
+    monkeypatch.setattr(FrameLog, "append", counting)
+    fanout = PoseFanout("robots", Metrics(), stream_queue_depth=64, stream_min_interval_s=0.0)
+    poses = 30
+
+    async def scenario() -> list[list[int]]:
+        fanout.bind_loop(asyncio.get_running_loop(), lambda p: f"{p.seq}\n".encode())
+        streams = [fanout.open_stream("s-1") for _ in range(200)]
+        for seq in range(poses):
+            fanout.publish(Pose("s-1", "r1", seq, seq, 0.0, 0.0, 0.0, 1.0))
+        got: list[list[int]] = []
+        for stream in streams:
+            seqs: list[int] = []
+            while len(seqs) < poses:
+                chunk = await asyncio.wait_for(stream.next_chunk(), 10)
+                assert chunk is not None
+                seqs.extend(int(x) for x in chunk.decode().split())
+            got.append(seqs)
+            fanout.close_stream(stream)
+        return got
+
+    got = asyncio.run(scenario())
+    assert all(seqs == list(range(poses)) for seqs in got)
+    assert appends == list(range(poses))
+
+
 def test_recording_failure_is_counted_and_the_worker_survives(
     runtime: MappingRuntime, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +19,9 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
     wait_for,
 )
 
+from clients.keyexpr import scan_key
+from clients.recording import iter_raw_records
+from service.app import checkpoint
 from service.app.mapper import RemoteMapper
 from service.app.runtime import MappingRuntime
 from service.app.sessions import MappingSession
@@ -101,3 +107,81 @@ def test_a_killed_mapper_process_is_started_again_and_its_maps_rebuilt(
     assert_same_session(*pair)
     assert "mapping_mapper_restarts 1" in remote.metrics.render().splitlines()
     assert pair[1].estimator_errors == 0
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+def test_leased_recordings_stay_whole_under_checkpoints_idle_closes_and_a_stop(
+    tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Scans keep coming while the lease is taken back again and again (a checkpoint every 7
+    scans, idle closes from another thread, then a stop): every recording holds exactly scan,
+    pose, scan, pose..., each checkpoint covers exactly the scans before its segment, the
+    stopped session's recording is closed in its mapper process, and a restart serves the
+    same trajectories."""
+    monkeypatch.setattr(MappingSession, "checkpoint_every_scans", 7)
+    runtime = runtime_factory(tmp_path / "data", mapper_processes=2)
+    robots = [SimRobot(f"w{i}", seed=1 + i) for i in range(3)]
+    sessions = [runtime.sessions.create(r.robot_id, 0.05, False) for r in robots]
+    payloads = {r.robot_id: [r.next_payload() for _ in range(60)] for r in robots}
+    stop = threading.Event()
+
+    def closer() -> None:  # housekeeping's idle close, as often as it can get the lock
+        while not stop.is_set():
+            runtime.sessions.close_idle(0.0)
+            time.sleep(0.003)
+
+    thread = threading.Thread(target=closer)
+    thread.start()
+    try:
+        for k in range(60):
+            for robot in robots:
+                wait_for(lambda: runtime.ingest.pending() < 6, 60, "room", 0.002)
+                runtime.ingest.submit(scan_key(robot.robot_id), payloads[robot.robot_id][k])
+            if k == 40:
+                stop.set()  # no more idle closes: the stop alone must close the lease
+                thread.join()
+            if k == 45:  # mid-stream: its last scan may be queued, in flight or answered
+                runtime.sessions.stop(sessions[0].id)
+        wait_for(lambda: runtime.ingest.pending() == 0, 60, "the queues to drain")
+    finally:
+        stop.set()
+        thread.join()
+    expected = {}
+    for session in sessions:
+        info = session.info()
+        assert info.scans_accepted == info.poses
+        if session is sessions[0]:
+            assert 40 <= info.scans_accepted <= 46
+        else:
+            assert info.scans_accepted == 60
+        kinds = [
+            record.kind for path in session.recording_paths() for record in iter_raw_records(path)
+        ]
+        assert kinds == ["scan", "pose"] * info.scans_accepted
+        assert [p.seq for p in session.trajectory()] == list(range(info.poses))
+        # Each checkpoint covers exactly the scans recorded in the segments before its own.
+        store = session._store
+        checkpoints = store.checkpoint_paths()
+        assert checkpoints
+        for segment, path in checkpoints:
+            header, _ = checkpoint.read(path)
+            covered = sum(
+                1
+                for seg in store.segments()
+                if seg.index < segment
+                for record in iter_raw_records(seg.path)
+                if record.kind == "scan"
+            )
+            assert covered == header.scans_accepted, (path.name, covered, header)
+        expected[session.id] = poses(session)
+    # The stopped session's recording is closed everywhere, its mapper process included.
+    stopped_files = {str(seg.path) for seg in sessions[0]._store.segments()}
+    for pid in runtime.mapper_pool.pids if runtime.mapper_pool else []:
+        for fd in Path(f"/proc/{pid}/fd").iterdir():
+            with contextlib.suppress(OSError):
+                assert os.readlink(fd) not in stopped_files
+    runtime.close()
+    again = runtime_factory(tmp_path / "data", mapper_processes=2)
+    for session_id, trajectory in expected.items():
+        assert poses(again.sessions.get(session_id)) == trajectory
