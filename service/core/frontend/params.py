@@ -69,6 +69,9 @@ class EstimatorParams:
     direction_sigma_deg: float = 2.0  # trust in it as the Manhattan heading's prior
     direction_min_contrast: float = 0.1
     direction_line_deviation: float = 0.05  # sparse scans: far collinear points get a direction
+    weak_directions: bool = True  # dense scans: ... which only stops them voting along it
+    coverage_cut: bool = True  # current points beyond the reference's coverage do not vote
+    field_match: bool = True  # an axis left ambiguous is searched in 2-D (`field_match`)
     wall_reanchor_fraction: float = 0.25  # on a relative heading, prior-free walls this strong ...
     wall_reanchor_max_deg: float = 30.0  # ... within this of it make the heading absolute again
     translation_gate_m: float = 0.15  # > 0: correlate only pairs this close on the other axis

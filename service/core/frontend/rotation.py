@@ -35,27 +35,40 @@ def tangent_directions(
     vote on both axes, and as they keep their place relative to the robot, they vote for
     standing still (a corridor seen at grazing angles). `max_line_deviation` 0: close points only.
     """
+    ang, close, line = split_tangent_directions(points_xy_m, max_gap_m, max_line_deviation)
+    return ang, close | line
+
+
+def split_tangent_directions(
+    points_xy_m: FloatArray, max_gap_m: float = 0.3, max_line_deviation: float = 0.0
+) -> tuple[FloatArray, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
+    """`tangent_directions` with its two kinds of reliable point apart: (angles, close, line).
+
+    `line` are the points with a direction only from far, collinear neighbours (not `close`).
+    """
     m = points_xy_m.shape[0]
     ang = np.zeros(m)
-    ok = np.zeros(m, dtype=bool)
+    close = np.zeros(m, dtype=bool)
+    line = np.zeros(m, dtype=bool)
     if m < 5:
-        return ang, ok
+        return ang, close, line
     d = points_xy_m[4:] - points_xy_m[:-4]
     gaps = np.hypot(*np.diff(points_xy_m, axis=0).T)
     near = gaps < max_gap_m
     good = near[:-3] & near[1:-2] & near[2:-1] & near[3:]
+    # Coincident neighbours have no direction (column by column: (n, 2) sums are slow).
+    distinct = np.abs(d[:, 0]) + np.abs(d[:, 1]) > 1e-6
     if max_line_deviation > 0.0:
         # Distance of each middle point from the chord line, times the chord's length.
         deviation = np.zeros(m - 4)
         for k in (1, 2, 3):
             v = points_xy_m[k : m - 4 + k] - points_xy_m[:-4]
             np.maximum(deviation, np.abs(d[:, 0] * v[:, 1] - d[:, 1] * v[:, 0]), out=deviation)
-        good |= deviation < max_line_deviation * (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
-    # Coincident neighbours have no direction (column by column: (n, 2) sums are slow).
-    good &= np.abs(d[:, 0]) + np.abs(d[:, 1]) > 1e-6
+        collinear = deviation < max_line_deviation * (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+        line[2:-2] = collinear & ~good & distinct
     ang[2:-2] = np.arctan2(d[:, 1], d[:, 0]) % math.pi
-    ok[2:-2] = good
-    return ang, ok
+    close[2:-2] = good & distinct
+    return ang, close, line
 
 
 def direction_counts(directions_rad: FloatArray) -> npt.NDArray[np.intp]:

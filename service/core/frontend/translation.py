@@ -30,13 +30,17 @@ def orientation_weights(
     reliable: npt.NDArray[np.bool_],
     theta_rad: float,
     isolated_weight: float = 0.15,
+    weak: npt.NDArray[np.bool_] | None = None,
 ) -> FloatArray:
     """(M, 2) weights: column 0 = how much a point constrains x, column 1 = y.
 
     `directions_rad` are the points' surface directions in the laser frame
     (`rotation.tangent_directions`); `theta_rad` turns them into the map frame. A wall along y
     (tangent angle β = 90°) constrains x: w_x = sin²β, w_y = cos²β, sharpened. Points without
-    a reliable direction (no close neighbours) vote `isolated_weight` on both axes.
+    a reliable direction (no close neighbours) vote `isolated_weight` on both axes. `weak`
+    points (a direction from far, collinear neighbours only) vote `isolated_weight` across
+    their wall and nothing along it: a grazing wall point keeps its place relative to the
+    robot, so along the wall it votes for standing still.
     """
     s2 = np.sin(directions_rad + theta_rad)
     s2 *= s2
@@ -44,7 +48,11 @@ def orientation_weights(
     w = np.empty((s2.shape[0], 2))
     np.clip((s2 - 0.5) * 1.6 + 0.5, 0.0, 1.0, out=w[:, 0])
     np.clip(0.5 - (s2 - 0.5) * 1.6, 0.0, 1.0, out=w[:, 1])
-    w[~reliable] = isolated_weight
+    unreliable = ~reliable
+    if weak is not None:
+        w[weak] *= isolated_weight
+        unreliable &= ~weak
+    w[unreliable] = isolated_weight
     return w
 
 

@@ -268,3 +268,51 @@ def test_odometry_prediction_carries_a_motion_beyond_the_search_window() -> None
     assert out.flags & PoseFlag.ODOMETRY_PRIOR
     assert math.hypot(out.x_m - motion.x_m, out.y_m - motion.y_m) < 0.01, out.pose
     assert abs(wrap_angle(out.theta_rad - motion.theta_rad)) < math.radians(0.5), out.pose
+
+
+def plain_corridor(length_m: float = 40.0, half_width_m: float = 1.2) -> Segments:
+    """Two plain walls and two end walls: nothing along the corridor but its ends."""
+    w = half_width_m
+    return np.array(
+        [
+            (0.0, -w, length_m, -w),
+            (0.0, w, length_m, w),
+            (0.0, -w, 0.0, w),
+            (length_m, -w, length_m, w),
+        ],
+        dtype=np.float64,
+    )
+
+
+def test_plain_corridor_from_a_standing_start() -> None:
+    """40 m from a standing start at 10 Hz. For the first 10 m the far end is beyond the 30 m
+    range and the walls say nothing along the corridor: that stretch must be reported as
+    unobservable (AMBIGUOUS_X), not measured. Once the end wall is in view, the motion along
+    the corridor is measured: the rest of the corridor within 2 % of its length.
+
+    It used to stand still the whole way, unflagged, with a 6 mm σ.
+    """
+    segs = plain_corridor()
+    rng = np.random.default_rng(3)
+    est = ManhattanEstimator(EstimatorParams(use_odometry=False))
+    x_m, speed_m_s, dt_s = 0.5, 0.0, 0.1
+    blind: list[PoseFlag] = []  # true x in 2..9 m: nothing in range along the corridor
+    seen: list[tuple[float, float]] = []  # (true x, estimated x) once the end is in view
+    k = 0
+    while x_m < 39.0:
+        out = est.process(
+            cast(segs, Pose2D(x_m, 0.0, 0.0), noise_m=0.01, rng=rng, stamp_ns=round(k * dt_s * 1e9))
+        )
+        if 2.0 < x_m < 9.0:
+            blind.append(out.flags)
+        if x_m > 12.0:
+            seen.append((x_m, out.pose.x_m))
+        assert abs(out.pose.y_m) < 0.05, k
+        assert abs(math.degrees(wrap_angle(out.theta_rad))) < 0.5, k
+        speed_m_s = min(0.7, speed_m_s + 0.5 * dt_s)  # accelerates at 0.5 m/s² to 0.7 m/s
+        x_m += speed_m_s * dt_s
+        k += 1
+    assert sum(bool(f & PoseFlag.AMBIGUOUS_X) for f in blind) > 0.9 * len(blind)
+    true_m = seen[-1][0] - seen[0][0]
+    estimated_m = seen[-1][1] - seen[0][1]
+    assert abs(estimated_m - true_m) < 0.02 * true_m, (estimated_m, true_m)
