@@ -41,6 +41,9 @@ def assert_same_session(a: MappingSession, b: MappingSession) -> None:
 
 def assert_same_session_data(a: MappingSession, b: MappingSession) -> None:
     """Counters, trajectory and map equal (the restore status may differ)."""
+    # The back end draws the map in its own thread: both have every node in it first.
+    assert a.wait_backend(60)
+    assert b.wait_backend(60)
     ia, ib = a.info(), b.info()
     assert (ia.scans_accepted, ia.poses, ia.last_pose) == (
         ib.scans_accepted,
