@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from service.core.maps.grid import OccupancyGrid
 from service.core.maps.composed import ChunkedMap
+from service.core.maps.grid import OccupancyGrid
 from service.core.types import LaserScan, Pose2D
 
 
