@@ -133,6 +133,9 @@ class BackendScheduler:
     def schedule(self, backend: LiveBackend) -> None:
         with self._lock:
             if backend.scheduled:
+                # Being stepped (or queued): step it once more after this turn, so that a wake-up
+                # arriving during its step (the render timer) is not lost.
+                backend.again = True
                 return
             backend.scheduled = True
             self._ready.append(backend)
@@ -153,7 +156,8 @@ class BackendScheduler:
             except Exception:  # the thread must not die: every session's back end needs it
                 log.exception("back end step failed")
             with self._lock:
-                if more:
+                if more or backend.again:
+                    backend.again = False
                     self._ready.append(backend)
                 else:
                     backend.scheduled = False
@@ -179,6 +183,7 @@ class LiveBackend:
         self._lock = threading.Lock()  # guards the queue and the published references
         self._queue: deque[NodeItem] = deque()
         self.scheduled = False  # guarded by the scheduler's lock
+        self.again = False  # scheduled again while scheduled (guarded by the scheduler's lock)
         self._closed = False
         self._generation = 0  # bumped by reset/restore: items of an older core are dropped
         self._revision = 0

@@ -836,7 +836,11 @@ class MappingSession:
         with self.lock:
             mapper = self._mapper
         wait = getattr(mapper, "wait_backend", None)
-        done = True if wait is None else bool(wait(timeout_s))
+        try:
+            done = True if wait is None else bool(wait(timeout_s))
+        except MapperError as err:  # its process is gone or shutting down: nothing to wait for
+            log.debug("session %s: back end not waited for: %s", self.id, err)
+            done = False
         with self.lock:
             self._graph_fetched_s = 0.0  # the next read asks for the graph and map again
         return done
