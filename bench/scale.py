@@ -55,7 +55,11 @@ def free_port() -> int:
 
 
 def service_command(
-    http_port: int, data_dir: Path, zenoh_endpoint: str, mapper_processes: int
+    http_port: int,
+    data_dir: Path,
+    zenoh_endpoint: str,
+    mapper_processes: int,
+    loop_closure: bool = True,
 ) -> list[str]:
     return [
         str(BIN / "mapping-service"),
@@ -68,6 +72,7 @@ def service_command(
         zenoh_endpoint,
         "--mapper-processes",
         str(mapper_processes),
+        *([] if loop_closure else ["--no-loop-closure"]),
     ]
 
 
@@ -89,6 +94,7 @@ class ScaleConfig:
     zenoh_pose_subscribers: int = 0  # Zenoh sessions subscribed to every pose, same process
     zenoh_via_router: bool = True  # the subscribers behind one router (in that process)
     stage_profile: bool = False  # py-spy each service process on its own (bench.cpu_budget)
+    loop_closure: bool = True  # False: `serve --no-loop-closure` (the front end alone)
 
 
 @dataclass(slots=True)
@@ -346,7 +352,9 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
     try:
         service = procs.start(
             "service",
-            service_command(http_port, data_dir, service_ep, cfg.mapper_processes),
+            service_command(
+                http_port, data_dir, service_ep, cfg.mapper_processes, cfg.loop_closure
+            ),
             work_dir,
             stdout=subprocess.DEVNULL,
         )
@@ -595,6 +603,14 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
                 shares[label] = stage_shares(out.read_text())
         if shares:
             result["stage_shares"] = shares
+        result["loop_closures"] = {
+            kind: sum(
+                v
+                for k, v in (metrics1 or {}).items()
+                if k.startswith(f"mapping_loop_closures_{kind}")
+            )
+            for kind in ("accepted", "rejected")
+        }
         if profile is not None:
             result["profile"] = profile.as_dict()
     finally:

@@ -1,6 +1,7 @@
 """What other programs use to talk to the mapping system: wire messages, HTTP client, CLI."""
 
 from clients.http import (
+    Graph,
     MapInfo,
     MappingClient,
     MappingConnectionError,
@@ -26,6 +27,7 @@ from clients.wire import (
 
 __all__ = [
     "DecodeError",
+    "Graph",
     "MapInfo",
     "MappingClient",
     "MappingConnectionError",

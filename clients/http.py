@@ -294,6 +294,93 @@ class Health:
 # Strict JSON field access: every mismatch is a MappingProtocolError naming the field.
 
 
+@dataclass(frozen=True, slots=True)
+class GraphNode:
+    """A pose-graph node: its optimised pose and the front end's (map frame, m, rad)."""
+
+    id: int
+    sequence: int
+    x: float
+    y: float
+    theta: float
+    frontend_x: float
+    frontend_y: float
+    frontend_theta: float
+
+
+@dataclass(frozen=True, slots=True)
+class GraphClosure:
+    """One loop-closure search: from the older node to the query node, kept or refused."""
+
+    from_node: int
+    to_node: int
+    score: float
+    accepted: bool
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class Graph:
+    """`GET /sessions/{id}/graph`: nodes, sequential edges (node i to i + 1), closures."""
+
+    session_id: str
+    revision: int
+    nodes: list[GraphNode]
+    edges: list[tuple[int, int]]
+    closures: list[GraphClosure]
+    accepted: int
+    rejected: dict[str, int]
+
+    @property
+    def accepted_closures(self) -> list[GraphClosure]:
+        return [c for c in self.closures if c.accepted]
+
+    @classmethod
+    def from_json(cls, data: object) -> Graph:
+        what = "graph"
+        obj = _object(data, what)
+        nodes = []
+        for raw in _get_list(obj, "nodes", what):
+            n = _object(raw, "graph node")
+            nodes.append(
+                GraphNode(
+                    id=_get_int(n, "id", "graph node"),
+                    sequence=_get_int(n, "sequence", "graph node"),
+                    **{
+                        k: _get_float(n, k, "graph node")
+                        for k in ("x", "y", "theta", "frontend_x", "frontend_y", "frontend_theta")
+                    },
+                )
+            )
+        edges = []
+        for raw in _get_list(obj, "edges", what):
+            e = _object(raw, "graph edge")
+            edges.append((_get_int(e, "from_node", "graph edge"), _get_int(e, "to_node", "edge")))
+        closures = []
+        for raw in _get_list(obj, "closures", what):
+            c = _object(raw, "graph closure")
+            closures.append(
+                GraphClosure(
+                    from_node=_get_int(c, "from_node", "graph closure"),
+                    to_node=_get_int(c, "to_node", "graph closure"),
+                    score=_get_float(c, "score", "graph closure"),
+                    accepted=_get_bool(c, "accepted", "graph closure"),
+                    reason=_get_str(c, "reason", "graph closure"),
+                )
+            )
+        counts = _object(_missing(obj, "loop_closures", what), "loop_closures")
+        rejected = _object(_missing(counts, "rejected", "loop_closures"), "rejected")
+        return cls(
+            session_id=_get_str(obj, "session_id", what),
+            revision=_get_int(obj, "revision", what),
+            nodes=nodes,
+            edges=edges,
+            closures=closures,
+            accepted=_get_int(counts, "accepted", "loop_closures"),
+            rejected={str(k): _get_int(rejected, k, "rejected") for k in rejected},
+        )
+
+
 def _object(data: object, what: str) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise MappingProtocolError(None, f"{what}: expected a JSON object, got {_kind(data)}")
@@ -449,6 +536,10 @@ class MappingClient:
         """The latest pose. Until the session has its first pose: a `MappingError` with status
         409 and code `no_pose_yet` (404 `not_found` means there is no such session)."""
         return PoseView.from_json(self._json("GET", _session_path(session_id, "pose")))
+
+    def get_graph(self, session_id: str) -> Graph:
+        """The session's pose graph (loop closure): nodes, edges, closures and counters."""
+        return Graph.from_json(self._json("GET", _session_path(session_id, "graph")))
 
     def get_trajectory_page(
         self, session_id: str, *, since_seq: int = 0, limit: int | None = None, every: int = 1
@@ -689,6 +780,9 @@ def _iter_sse(lines: Iterator[str]) -> Iterator[tuple[str, str]]:
 
 __all__ = [
     "DEFAULT_TIMEOUT_S",
+    "Graph",
+    "GraphClosure",
+    "GraphNode",
     "Health",
     "MapInfo",
     "MapUrls",

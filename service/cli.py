@@ -164,6 +164,12 @@ def build_parser() -> argparse.ArgumentParser:
         "(or env MAPPING_MAPPER_PROCESSES; default: 0, in the service's process)",
     )
     p_serve.add_argument(
+        "--no-loop-closure",
+        action="store_true",
+        help="run the front end alone: no pose graph, no loop closure, poses final once "
+        "published (default: loop closure on, in the background; docs/backend.md)",
+    )
+    p_serve.add_argument(
         "--foxglove-port",
         type=int,
         default=0,
@@ -245,6 +251,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_demo.add_argument("--world-seed", type=int, default=1, help="simulated building (default: 1)")
     p_demo.add_argument("--robots", type=int, default=1, help="number of simulated robots")
+    p_demo.add_argument(
+        "--no-loop-closure",
+        action="store_true",
+        help="the front end alone, as `serve --no-loop-closure` (default: loops closed)",
+    )
     p_demo.add_argument(
         "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
     )

@@ -24,6 +24,7 @@ from service.app.runtime import MappingRuntime
 from service.app.sessions import MappingSession
 from service.app.settings import (
     HttpSettings,
+    IngestSettings,
     ServiceSettings,
     StorageSettings,
     ZenohSettings,
@@ -163,6 +164,7 @@ def run_demo(args: argparse.Namespace) -> int:
         ),
         zenoh=ZenohSettings(listen=(endpoint,)),
         storage=StorageSettings(data_dir=data_dir),
+        ingest=IngestSettings(loop_closure=not getattr(args, "no_loop_closure", False)),
     )
     log_settings(settings)
     fleet = Fleet(args.robots, args.world_seed, endpoint, data_dir)

@@ -18,6 +18,11 @@ Protocol on the pipe: service → process `("call", id, op, key, args)` and `("s
 payload)`; process → service `("reply", id, status, value)` and `("done", key, Done)`. One
 reader thread per process in the service receives both.
 
+With `Engine.loop_closure` (the default) each session's mapper also holds its back end
+(`service.app.backend.LiveBackend`): keyframes go to a background thread of the same process,
+which closes loops and draws the map at the optimised poses; `map_scan` answers with the front
+end's pose and the newest correction, and never waits for that thread.
+
 A mapper process that dies (killed, out of memory) loses the state of its sessions. The process
 is started again at the next call, and each of its sessions sees `MapperLostError` once: the
 session then rebuilds itself from its checkpoint and recording (`MappingSession`), as a restart
@@ -42,14 +47,22 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Final, NamedTuple, Protocol
+from typing import TYPE_CHECKING, Any, Final, NamedTuple, Protocol
+
+import numpy as np
 
 from clients.recording import RecordingReport, RecordingWriter
 from clients.wire import Pose, PoseFlag, Scan, decode_scan, encode_pose
 from service.app import statecodec
+from service.core.maps.grid import GridImage
 from service.core.types import LaserScan, Pose2D, PoseEstimate
 
+if TYPE_CHECKING:
+    from service.app.backend import GraphSnapshot, LiveBackend
+
 log = logging.getLogger(__name__)
+
+STATE_VERSION: Final = 2  # LocalMapper.state(): 1 = (estimator, grid), 2 = a dict with the back end
 
 
 class Estimator(Protocol):
@@ -94,6 +107,9 @@ class Engine:
     make_estimator: EstimatorFactory = default_estimator_factory
     make_grid: GridFactory = default_grid_factory
     to_laser: ScanConverter = default_scan_converter
+    # The back end (loop closure, pose graph) beside the front end, in a background thread
+    # (service/app/backend.py); False: the front end and its grid alone.
+    loop_closure: bool = True
 
 
 class MappedScan(NamedTuple):
@@ -106,6 +122,12 @@ class MappedScan(NamedTuple):
     flags: int
     is_keyframe: bool  # the grid took this scan in
     covariance: tuple[float, ...] = ()  # row-major 3×3 (x, y, θ); () when the estimator has none
+    # The back end's view when it answered: its graph revision, the newest node's correction
+    # (x, y, theta: optimised ∘ front-end⁻¹, which moves this pose onto the graph) and the
+    # revision of its composed map. Zeros without a back end.
+    graph_revision: int = 0
+    correction: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    image_revision: int = 0
 
 
 def make_pose(mapped: MappedScan, session_id: str, robot_id: str, seq: int, stamp_ns: int) -> Pose:
@@ -173,9 +195,14 @@ class MapperLostError(MapperError):
 class Mapper(Protocol):
     """One session's estimator and grid."""
 
-    def map_scan(self, scan: Scan, payload: bytes | None = None) -> MappedScan:
+    def map_scan(self, scan: Scan, payload: bytes | None = None, seq: int = -1) -> MappedScan:
         """Map `scan`; `payload` is its wire encoding when the caller has it (a mapper in
-        another process is sent those bytes rather than the pickled `Scan`)."""
+        another process is sent those bytes rather than the pickled `Scan`); `seq` is the
+        sequence its pose will have (the back end's nodes are named by it)."""
+        ...
+
+    def graph(self, known_revision: int = -1) -> GraphSnapshot | None:
+        """The back end's graph; None when it is still `known_revision` (or there is none)."""
         ...
 
     def reset(self) -> None: ...
@@ -189,7 +216,8 @@ MapperFactory = Callable[[str, bool, float], Mapper]  # (session id, use_odometr
 
 
 class LocalMapper:
-    """Estimator and grid in this process."""
+    """Estimator and grid in this process; with `engine.loop_closure`, the back end too (its
+    work in the process's back-end thread, its map composed there)."""
 
     def __init__(self, engine: Engine, use_odometry: bool, resolution_m: float) -> None:
         self._engine = engine
@@ -197,13 +225,29 @@ class LocalMapper:
         self._resolution_m = resolution_m
         self._estimator = engine.make_estimator(use_odometry)
         self._grid = engine.make_grid(resolution_m)
+        self._backend: LiveBackend | None = None
+        if engine.loop_closure:
+            from service.app.backend import LiveBackend  # noqa: PLC0415  # gtsam: only when used
 
-    def map_scan(self, scan: Scan, payload: bytes | None = None) -> MappedScan:
+            self._backend = LiveBackend(resolution_m)
+
+    def map_scan(self, scan: Scan, payload: bytes | None = None, seq: int = -1) -> MappedScan:
         laser = self._engine.to_laser(scan, self._use_odometry)
         estimate = self._estimator.process(laser)
-        if estimate.is_keyframe:
-            self._grid.integrate(laser, estimate.pose)
         pose = estimate.pose
+        covariance = tuple(float(v) for v in getattr(estimate, "covariance", ()))
+        backend = self._backend
+        revision, image_revision = 0, 0
+        correction = (0.0, 0.0, 0.0)
+        if backend is None:
+            if estimate.is_keyframe:
+                self._grid.integrate(laser, pose)
+        else:
+            if estimate.is_keyframe and len(covariance) == 9:
+                # The map is drawn from the back end's chunks: the grid is not integrated.
+                backend.submit(laser, pose, covariance, int(estimate.flags), seq)
+            revision, c, image_revision = backend.correction()
+            correction = (c.x_m, c.y_m, c.theta_rad)
         return MappedScan(
             pose.x_m,
             pose.y_m,
@@ -211,38 +255,84 @@ class LocalMapper:
             float(estimate.quality),
             int(estimate.flags),
             bool(estimate.is_keyframe),
-            tuple(float(v) for v in getattr(estimate, "covariance", ())),
+            covariance,
+            revision,
+            correction,
+            image_revision,
         )
 
-    def map_payload(self, payload: bytes) -> MappedScan:
+    def map_payload(self, payload: bytes, seq: int = -1) -> MappedScan:
         """`map_scan` of a wire payload the service already validated (mapper processes)."""
-        return self.map_scan(decode_scan(payload, max_payload_bytes=len(payload)))
+        return self.map_scan(decode_scan(payload, max_payload_bytes=len(payload)), None, seq)
+
+    def graph(self, known_revision: int = -1) -> GraphSnapshot | None:
+        if self._backend is None:
+            return None
+        snap = self._backend.snapshot()
+        return None if snap.revision == known_revision else snap
+
+    def wait_backend(self, timeout_s: float = 60.0) -> bool:
+        """Until the back end has every node and its map drawn (tests and benchmarks)."""
+        return self._backend is None or self._backend.wait_idle(timeout_s)
 
     def reset(self) -> None:
         self._estimator.reset()
         self._grid = self._engine.make_grid(self._resolution_m)
+        if self._backend is not None:
+            self._backend.reset()
 
     delegates = False  # records nothing itself: the session's store does
 
     def snapshot(self) -> Any:
-        return self._grid.snapshot()
+        if self._backend is None:
+            return self._grid.snapshot()
+        image = self._backend.image()
+        if image is None:
+            return GridImage(np.zeros((0, 0), dtype=np.int8), 0.0, 0.0, self._resolution_m)
+        return image
 
     def _allowed_modules(self) -> tuple[str, ...]:
         """Where the checkpoint codec may find classes: the core and our own factories'."""
         return ("service.core", type(self._estimator).__module__, type(self._grid).__module__)
 
     def state(self) -> bytes:
-        """Estimator and grid as data (arrays plus JSON, compressed): no code, see statecodec."""
-        return statecodec.encode((self._estimator, self._grid), self._allowed_modules())
+        """Estimator, grid and back end as data (arrays plus JSON, compressed): no code, see
+        statecodec. Version 2 (a dict) adds the back end; version 1 was the bare pair."""
+        allowed = self._allowed_modules()
+
+        def encode(backend: dict[str, Any] | None) -> bytes:
+            tree = {
+                "version": STATE_VERSION,
+                "estimator": self._estimator,
+                "grid": self._grid,
+                "backend": backend,
+            }
+            return statecodec.encode(tree, allowed)
+
+        # The back end's thread is held off its core while it is encoded.
+        return self._backend.state(encode) if self._backend is not None else encode(None)
 
     def restore(self, state: bytes) -> None:
-        estimator, grid = statecodec.decode(state, self._allowed_modules())
+        tree = statecodec.decode(state, self._allowed_modules())
+        backend: Any = None
+        if isinstance(tree, tuple) and len(tree) == 2:  # version 1: no back end (it restarts)
+            estimator, grid = tree
+        elif isinstance(tree, dict) and tree.get("version") == STATE_VERSION:
+            estimator, grid, backend = tree["estimator"], tree["grid"], tree["backend"]
+        else:
+            raise statecodec.StateCodecError("unknown mapper state version")
         if type(estimator) is not type(self._estimator) or type(grid) is not type(self._grid):
             raise statecodec.StateCodecError("checkpoint of another estimator or grid type")
+        if self._backend is not None:
+            if backend is not None:
+                self._backend.restore(backend)
+            else:
+                self._backend.reset()
         self._estimator, self._grid = estimator, grid
 
     def close(self) -> None:
-        pass
+        if self._backend is not None:
+            self._backend.close()
 
 
 def local_mapper_factory(engine: Engine) -> MapperFactory:
@@ -279,7 +369,7 @@ class _Lease:
         except Exception as err:  # disk full, I/O error: not recorded, not accepted
             return Done(False, None, None, seq, scan.stamp_ns, f"store: {err}", 0.0)
         try:
-            mapped = self.mapper.map_scan(scan, payload)
+            mapped = self.mapper.map_scan(scan, payload, seq)
         except Exception as err:  # recorded; a replay meets the same failure
             log.debug("estimator failed", exc_info=True)
             busy = time.perf_counter() - t0
@@ -580,12 +670,19 @@ class RemoteMapper:
     def _call(self, op: str, *args: Any) -> Any:
         return self._proc.call(self._generation, op, self._key, *args)
 
-    def map_scan(self, scan: Scan, payload: bytes | None = None) -> MappedScan:
+    def map_scan(self, scan: Scan, payload: bytes | None = None, seq: int = -1) -> MappedScan:
         # The wire bytes (~2.4 KiB) cross the pipe as they are: pickling the decoded `Scan`
         # (dataclass and numpy array, ~8.7 KiB) cost the service's process ~15 us a scan more.
         if payload is not None:
-            return MappedScan(*self._call("map_payload", payload))
-        return MappedScan(*self._call("map_scan", scan))
+            return MappedScan(*self._call("map_payload", payload, seq))
+        return MappedScan(*self._call("map_scan", scan, None, seq))
+
+    def graph(self, known_revision: int = -1) -> GraphSnapshot | None:
+        snap: GraphSnapshot | None = self._call("graph", known_revision)
+        return snap
+
+    def wait_backend(self, timeout_s: float = 60.0) -> bool:
+        return bool(self._call("wait_backend", timeout_s))
 
     def delegate(self, spec: LeaseSpec) -> None:
         """Hand the session's recording to the process: it records and maps what `forward`

@@ -60,7 +60,9 @@ class MappingRuntime:
         self.data = DataDir(settings.storage.data_dir)
         self.maps = MapStore(self.data.maps_dir)
         processes = settings.ingest.mapper_processes
-        self.mapper_pool = MapperPool(processes, engine or Engine()) if processes else None
+        if engine is None:
+            engine = Engine(loop_closure=settings.ingest.loop_closure)
+        self.mapper_pool = MapperPool(processes, engine) if processes else None
         self.sessions = SessionManager(
             self.data,
             self.maps,
@@ -147,6 +149,16 @@ class MappingRuntime:
             "mapping_recordings_pruned_bytes",
             "Bytes of covered scans pruned by the retention policy since the start.",
             lambda: [(labels(), float(self.pruned_bytes))],
+        )
+        self.metrics.gauge(
+            "mapping_loop_closures_accepted",
+            "Loop closures accepted into the pose graph, by session (loop closure on).",
+            lambda: self._loop_gauge(accepted=True),
+        )
+        self.metrics.gauge(
+            "mapping_loop_closures_rejected",
+            "Loop closure searches refused, by session and reason.",
+            lambda: self._loop_gauge(accepted=False),
         )
         self.metrics.gauge(
             "mapping_robots_alive",
@@ -394,6 +406,21 @@ class MappingRuntime:
             value = getattr(session.damage, name)
             if value:
                 out.append((labels(session=session.id), float(value)))
+        return out
+
+    def _loop_gauge(self, *, accepted: bool) -> list[tuple[Labels, float]]:
+        out: list[tuple[Labels, float]] = []
+        for session in self.sessions.list():
+            snap = session.graph_counts()
+            if snap is None or not snap.nodes:
+                continue
+            if accepted:
+                out.append((labels(session=session.id), float(snap.accepted)))
+            else:
+                out.extend(
+                    (labels(session=session.id, reason=reason), float(n))
+                    for reason, n in sorted(snap.rejected.items())
+                )
         return out
 
     def _session_gauge(self) -> list[tuple[Labels, float]]:

@@ -52,6 +52,7 @@ from clients.wire import (
     encode_pose,
 )
 from service.app import checkpoint as ckpt
+from service.app.backend import EMPTY_SNAPSHOT, GraphSnapshot, correct_poses
 from service.app.errors import (
     ConflictError,
     NotFoundError,
@@ -93,6 +94,8 @@ SessionStatus = Literal["restoring", "ok", "degraded", "damaged"]
 HELD_SCANS_MAX: Final = 4096
 # A session whose robot sent nothing for this long has its recording closed (descriptors).
 IDLE_CLOSE_S: Final = 30.0
+# At shutdown, how long a session waits for its back end to take in the nodes handed to it.
+BACKEND_DRAIN_S: Final = 10.0
 # Checkpoints kept per session: the newest, and one before it in case the newest is damaged.
 CHECKPOINTS_KEPT: Final = 2
 
@@ -135,6 +138,8 @@ class SessionInfo:
     last_pose: Pose | None
     status: SessionStatus = "ok"
     damage: DamageSummary = field(default_factory=DamageSummary)
+    # The back end's, for its counters (not compared: its revision counts the thread's work).
+    graph: GraphSnapshot | None = field(default=None, compare=False)
 
 
 class Ingested(NamedTuple):
@@ -186,6 +191,13 @@ class MappingSession:
         self.map_revision = 0
         self._image_cache: tuple[Any, int] | None = None
         self._payload: bytes | None = None  # wire bytes of the scan being estimated (lock held)
+        # The back end (loop closure): the correction its answer to the latest scan carried,
+        # the revisions it reported, and the latest graph snapshot fetched for reads.
+        self._correction: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._graph_rev_seen = 0
+        self._image_rev_seen = 0
+        self._graph: GraphSnapshot = EMPTY_SNAPSHOT
+        self._graph_fetched_s = 0.0
         self._ckpt_segment = 0  # the segment the checkpoint in use starts (0: none)
         self._records_tail = 0  # records in segments >= _ckpt_segment
         self._checkpoint_scans = 0  # scans_accepted at the last checkpoint
@@ -347,15 +359,22 @@ class MappingSession:
         self._records_tail += 1
         self.scans_accepted += 1
         pose: Pose | None = None
+        published: Pose | None = None
+        encoded = done.pose_bytes
         if done.mapped is not None:
             pose = self._pose_from_mapped(done.mapped, done.stamp_ns, done.seq)
             self._records_tail += 1
             self._poses.append(pose)
+            # Recorded as the front end's (as on the sync path); published where the back end's
+            # graph puts it now.
+            published = _moved(pose, self._correction)
+            if published is not pose:
+                encoded = encode_pose(published)
         elif done.error is not None and done.error.startswith("estimator"):
             self._note_estimator_error(done.seq, done.error)
         if self.scans_accepted - self._checkpoint_scans >= self.checkpoint_every_scans:
             self._checkpoint_due = True  # written before the next scan is forwarded
-        on_done(Ingested(True, pose, done.pose_bytes, done.error if pose is None else None))
+        on_done(Ingested(True, published, encoded, done.error if pose is None else None))
 
     def _recover(self) -> None:
         """Rebuild the session from its checkpoint and recording after its mapper process
@@ -381,14 +400,20 @@ class MappingSession:
         self.scans_accepted += 1
         pose = self._estimate_payload(scan, payload)
         encoded: bytes | None = None
+        published: Pose | None = None
         if pose is not None:
+            # The recording keeps the front end's pose (deterministic: a replay checks it);
+            # clients are told where the back end's graph puts it now.
             encoded = encode_pose(pose)
             self._store.append(encoded)
             self._records_tail += 1
             self._poses.append(pose)
+            published = _moved(pose, self._correction)
+            if published is not pose:
+                encoded = encode_pose(published)
         if self.scans_accepted - self._checkpoint_scans >= self.checkpoint_every_scans:
             self._write_checkpoint()
-        return Ingested(True, pose, encoded)
+        return Ingested(True, published, encoded)
 
     def _estimate_payload(self, scan: Scan, payload: bytes) -> Pose | None:
         """`_estimate` of a scan whose wire bytes are at hand: a mapper in another process is
@@ -403,7 +428,7 @@ class MappingSession:
         """Run estimator and grid on `scan` (lock held). None if the estimator failed."""
         seq = self._poses[-1].seq + 1 if self._poses else 0  # = len unless records were lost
         try:
-            mapped = self._map(scan, self._payload)
+            mapped = self._map(scan, self._payload, seq)
         except Exception as err:
             # The estimator promises not to raise on bad data; if it does anyway, the scan stays
             # recorded (a replay meets the same failure) and the session carries on.
@@ -412,10 +437,14 @@ class MappingSession:
         return self._pose_from_mapped(mapped, scan.stamp_ns, seq)
 
     def _pose_from_mapped(self, mapped: MappedScan, stamp_ns: int, seq: int) -> Pose:
-        """The pose of a mapped scan, and the session's bookkeeping of the answer (both
-        transports: the sync path under the lock, a lease's answers on its reader thread)."""
-        if mapped.is_keyframe:
+        """The pose of a mapped scan (the front end's, as recorded), and the session's
+        bookkeeping of the answer (both transports: the sync path under the lock, a lease's
+        answers on its reader thread)."""
+        if mapped.is_keyframe or mapped.image_revision != self._image_rev_seen:
             self.map_revision += 1
+            self._image_rev_seen = mapped.image_revision
+        self._correction = mapped.correction
+        self._graph_rev_seen = mapped.graph_revision
         return make_pose(mapped, self.id, self.robot_id, seq, stamp_ns)
 
     def _note_estimator_error(self, seq: int, detail: str, *, exc_info: bool = False) -> None:
@@ -430,15 +459,15 @@ class MappingSession:
                 exc_info=exc_info,
             )
 
-    def _map(self, scan: Scan, payload: bytes | None) -> MappedScan:
+    def _map(self, scan: Scan, payload: bytes | None, seq: int) -> MappedScan:
         """The mapper's answer; a lost mapper (its process died) is rebuilt first (lock held)."""
         assert self._mapper is not None
         try:
-            return self._mapper.map_scan(scan, payload)
+            return self._mapper.map_scan(scan, payload, seq)
         except MapperLostError as err:
             log.error("session %s: %s; rebuilding its map from the recording", self.id, err)
             self._rebuild_mapper()
-            return self._mapper.map_scan(scan, payload)
+            return self._mapper.map_scan(scan, payload, seq)
 
     def _new_mapper(self) -> Mapper:
         if self._mapper is not None:
@@ -451,11 +480,13 @@ class MappingSession:
         the checkpoint's, then the recorded scans after it, as a restart would."""
         mapper = self._new_mapper()
         start = 0
+        next_seq = 0  # the sequence of the next scan's pose (the back end names nodes by it)
         if self._ckpt_segment:
             try:
-                _, state = ckpt.read(self._store.checkpoint_path(self._ckpt_segment))
+                header, state = ckpt.read(self._store.checkpoint_path(self._ckpt_segment))
                 mapper.restore(state)
                 start = self._ckpt_segment
+                next_seq = header.poses
             except Exception as err:  # the recording is the truth; a checkpoint saves time
                 log.warning("session %s: checkpoint does not restore: %s", self.id, err)
                 mapper = self._new_mapper()
@@ -471,11 +502,13 @@ class MappingSession:
                     if tail_seen >= upto:
                         break
                     tail_seen += 1
-                if record.kind != "scan":
-                    continue
                 try:
+                    if record.kind == "pose":
+                        next_seq = decode_pose(record.payload).seq + 1
+                    if record.kind != "scan":
+                        continue
                     scan = decode_scan(record.payload, max_payload_bytes=MAX_RECORD_BYTES)
-                    mapper.map_scan(scan, record.payload)
+                    mapper.map_scan(scan, record.payload, next_seq)
                 except DecodeError:
                     continue
                 replayed += 1
@@ -772,6 +805,8 @@ class MappingSession:
             if self.state != "active":
                 self._store.close_writer()
             mapper.reset()
+            self._graph = EMPTY_SNAPSHOT
+            self._correction = (0.0, 0.0, 0.0)
             self._poses = []
             self.scans_accepted = 0
             self.map_revision += 1
@@ -830,6 +865,10 @@ class MappingSession:
 
     def close(self) -> None:
         self._cancel.set()
+        if not self._restoring:
+            # Shutdown lets the back end take in the nodes it was handed (seconds at most), so
+            # the last map and graph are complete; the checkpoint would carry them anyway.
+            self.wait_backend(BACKEND_DRAIN_S)
         with self.lock:
             with contextlib.suppress(MapperError):  # a process gone: the recording stays
                 self._revoke(recover=False)
@@ -858,9 +897,12 @@ class MappingSession:
                 poses=0 if restoring else len(self._poses),
                 resolution_m=self.resolution_m,
                 use_odometry=self.use_odometry,
-                last_pose=self._poses[-1] if self._poses and not restoring else None,
+                last_pose=(
+                    self._corrected(self._poses[-1:])[0] if self._poses and not restoring else None
+                ),
                 status=self.status,
                 damage=self._damage,
+                graph=None if restoring else self._graph_snapshot(),
             )
 
     def recording_path(self) -> Path:
@@ -877,15 +919,87 @@ class MappingSession:
 
     @property
     def last_pose(self) -> Pose | None:
+        """The latest pose, where the back end's graph puts it now."""
         with self.lock:
-            if self._restoring:
+            if self._restoring or not self._poses:
                 return None
-            return self._poses[-1] if self._poses else None
+            return self._corrected([self._poses[-1]])[0]
 
     def trajectory(self) -> list[Pose]:
+        """Every pose, corrected by the latest graph (each by its latest node's correction)."""
         with self.lock:
             self._ready_for_reads()
-            return list(self._poses)
+            poses = list(self._poses)  # references: the correction is done unlocked
+            snap = self._graph_snapshot()
+        return _corrected(snap, poses)
+
+    # -- the back end's graph (loop closure) -------------------------------------------------
+
+    def _graph_snapshot(self) -> GraphSnapshot:
+        """The latest graph the mapper published (lock held): asked again when the mapper
+        reported a newer revision than the one held, or a second after the last ask."""
+        mapper = self._mapper
+        if mapper is None or self._restoring:
+            return self._graph
+        now = time.monotonic()
+        if self._graph.revision == self._graph_rev_seen and now - self._graph_fetched_s < 1.0:
+            return self._graph
+        try:
+            snap = mapper.graph(self._graph.revision)
+        except MapperError as err:  # a lost mapper process: the next scan rebuilds it
+            log.debug("session %s: graph unavailable: %s", self.id, err)
+            return self._graph
+        self._graph_fetched_s = now
+        if snap is not None:
+            self._graph = snap
+            if snap.image_revision != self._image_rev_seen:
+                self._image_rev_seen = snap.image_revision
+                self.map_revision += 1
+        return self._graph
+
+    def _corrected(self, poses: Sequence[Pose]) -> list[Pose]:
+        """`poses` (the front end's) moved onto the latest graph (lock held)."""
+        return _corrected(self._graph_snapshot(), poses)
+
+    def graph(self) -> GraphSnapshot:
+        """The back end's graph for `GET /sessions/{id}/graph` (empty without a back end)."""
+        with self.lock:
+            self._ready_for_reads()
+            return self._graph_snapshot()
+
+    def wait_backend(self, timeout_s: float = 60.0) -> bool:
+        """Until the back end has every node and its map drawn (tests, benchmarks, tools)."""
+        with self.lock:
+            mapper = self._mapper
+        wait = getattr(mapper, "wait_backend", None)
+        try:
+            done = True if wait is None else bool(wait(timeout_s))
+        except MapperError as err:  # its process is gone or shutting down: nothing to wait for
+            log.debug("session %s: back end not waited for: %s", self.id, err)
+            done = False
+        with self.lock:
+            self._graph_fetched_s = 0.0  # the next read asks for the graph and map again
+        return done
+
+    def graph_counts(self) -> GraphSnapshot | None:
+        """The latest graph for counters (/metrics); None while restoring."""
+        with self.lock:
+            if self._restoring or self._mapper is None:
+                return None
+            return self._graph_snapshot()
+
+    def loop_closures(self) -> list[tuple[tuple[float, float], tuple[float, float]]]:
+        """Accepted closures as segments between their nodes' optimised positions (map)."""
+        with self.lock:
+            if self._restoring:
+                return []
+            snap = self._graph_snapshot()
+        out = []
+        for c in snap.closures:
+            if c.accepted and max(c.from_node, c.to_node) < snap.nodes:
+                a, b = snap.optimised[c.from_node], snap.optimised[c.to_node]
+                out.append(((float(a[0]), float(a[1])), (float(b[0]), float(b[1]))))
+        return out
 
     def trajectory_page(
         self, since_seq: int = 0, limit: int | None = None, every: int = 1
@@ -916,7 +1030,9 @@ class MappingSession:
                 out = poses[start:stop]
                 index = stop
             next_seq = poses[index].seq if index < total else None
-            return out, next_seq, total
+            snap = self._graph_snapshot()
+        # Unlocked: up to 10,000 poses to move must not hold the session's ingest.
+        return _corrected(snap, out), next_seq, total
 
     def _ready_for_reads(self) -> None:
         if self._restoring:
@@ -929,6 +1045,7 @@ class MappingSession:
             raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
         if self._lost:
             self._recover()
+        self._graph_snapshot()  # a map drawn since the last scan bumps the revision
         if self._image_cache is None or self._image_cache[1] != self.map_revision:
             try:
                 image = self._mapper.snapshot()
@@ -946,7 +1063,7 @@ class MappingSession:
             return MapSnapshot(
                 image=self._image(),
                 trajectory_xy_m=np.empty((0, 2)),
-                last_pose=self._poses[-1] if self._poses else None,
+                last_pose=self._corrected(self._poses[-1:])[0] if self._poses else None,
                 revision=self.map_revision,
             )
 
@@ -956,11 +1073,21 @@ class MappingSession:
             image = self._image()
             poses = list(self._poses)  # a cheap copy of references; the work is done unlocked
             revision = self.map_revision
-        xy = np.fromiter(
-            (c for p in poses for c in (p.x_m, p.y_m)), dtype=np.float64, count=2 * len(poses)
-        ).reshape(-1, 2)
-        last = poses[-1] if poses else None
-        return MapSnapshot(image=image, trajectory_xy_m=xy, last_pose=last, revision=revision)
+            snap = self._graph_snapshot()
+        n = len(poses)
+        xyt = np.fromiter(
+            (c for p in poses for c in (p.x_m, p.y_m, p.theta_rad)), dtype=np.float64, count=3 * n
+        ).reshape(-1, 3)
+        if n and snap.nodes:
+            seqs = np.fromiter((p.seq for p in poses), dtype=np.int64, count=n)
+            xyt = correct_poses(snap, seqs, xyt)
+        last = None
+        if poses:
+            x, y, t = (float(v) for v in xyt[-1])
+            last = replace(poses[-1], x_m=x, y_m=y, theta_rad=t)
+        return MapSnapshot(
+            image=image, trajectory_xy_m=xyt[:, :2].copy(), last_pose=last, revision=revision
+        )
 
 
 def _has_records(directory: Path) -> bool:
@@ -986,6 +1113,35 @@ def _robot_id_from_recording(directory: Path) -> str | None:
         except Exception:  # a placeholder's name is best effort
             continue
     return None
+
+
+def _corrected(snap: GraphSnapshot, poses: Sequence[Pose]) -> list[Pose]:
+    """`poses` (the front end's) moved onto the graph of `snap`; unmoved ones kept as they are."""
+    if snap.nodes == 0 or not poses:
+        return list(poses)
+    seqs = np.fromiter((p.seq for p in poses), dtype=np.int64, count=len(poses))
+    xyt = np.array([(p.x_m, p.y_m, p.theta_rad) for p in poses], dtype=np.float64)
+    moved = correct_poses(snap, seqs, xyt)
+    same = (moved == xyt).all(axis=1).tolist()
+    return [
+        p if keep else replace(p, x_m=float(m[0]), y_m=float(m[1]), theta_rad=float(m[2]))
+        for p, m, keep in zip(poses, moved.tolist(), same, strict=True)
+    ]
+
+
+def _moved(pose: Pose, correction: tuple[float, float, float]) -> Pose:
+    """`pose` moved by a correction (x, y, theta); the same object when it is the identity."""
+    cx, cy, ct = correction
+    if cx == 0.0 and cy == 0.0 and ct == 0.0:
+        return pose
+    c, s = math.cos(ct), math.sin(ct)
+    theta = (pose.theta_rad + ct + math.pi) % (2 * math.pi) - math.pi
+    return replace(
+        pose,
+        x_m=cx + c * pose.x_m - s * pose.y_m,
+        y_m=cy + s * pose.x_m + c * pose.y_m,
+        theta_rad=theta,
+    )
 
 
 def _same_pose(a: Pose, b: Pose) -> bool:

@@ -92,6 +92,9 @@ class IngestSettings(_Frozen):
     workers: int | None = Field(
         default=None, ge=1, le=64, description="ingest threads (default: 1, or 2 per process)"
     )
+    # The back end (loop search, pose graph) beside every session's front end, in a background
+    # thread of the process that runs the estimator (docs/backend.md, "Live").
+    loop_closure: bool = Field(default=True, description="close loops (False: the front end alone)")
 
     @property
     def worker_threads(self) -> int:
@@ -320,7 +323,8 @@ def build_settings(
             {"mapper_processes": args.mapper_processes}
             if getattr(args, "mapper_processes", None) is not None
             else from_env(mapper_processes="MAPPER_PROCESSES")
-        ),
+        )
+        | ({"loop_closure": False} if getattr(args, "no_loop_closure", False) else {}),
         "fleet": {
             **({"robots": tuple(args.robots)} if getattr(args, "robots", None) else {}),
             **(

@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections import Counter
+from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,6 +29,7 @@ from service.core.backend.graph import GraphParams, PoseGraph, rotate_covariance
 from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
 from service.core.frontend.estimator import ManhattanEstimator
 from service.core.frontend.params import EstimatorParams
+from service.core.maps.composed import ChunkedMap
 from service.core.maps.submaps import SubmapBuilder, SubmapParams
 from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate
 
@@ -49,51 +51,54 @@ class SlamParams:
 @dataclass(slots=True)
 class LoopStats:
     accepted: int = 0
-    rejected: Counter[str] = field(default_factory=Counter)
+    rejected: dict[str, int] = field(default_factory=dict)  # reason -> count
     search_s: float = 0.0  # loop search
     optimise_s: float = 0.0  # iSAM2 and the final batch
     total_s: float = 0.0  # all of the back end: nodes, submaps, search, optimisation
     closures: list[LoopResult] = field(default_factory=list)  # the accepted ones
+    # The latest refused searches, for the live graph endpoint (bounded: Intel has ~1,600).
+    recent_rejected: deque[LoopResult] = field(default_factory=lambda: deque(maxlen=256))
 
 
-class SlamSession:
-    """Front end plus back end for one robot's session (pure computation, no IO)."""
+class SlamBackend:
+    """The back end alone: nodes, submaps, loop search, pose graph (pure computation, no IO).
 
-    def __init__(
-        self, estimator_params: EstimatorParams | None = None, params: SlamParams | None = None
-    ) -> None:
+    `SlamSession` drives it from the same thread as the front end (offline); the live service
+    drives it from a background thread (`service.app.backend`), fed with the front end's
+    keyframes. With `map_resolution_m`, every node's scan also goes into a map chunk
+    (`maps.composed`), so that the map can be drawn at the optimised poses.
+    """
+
+    def __init__(self, params: SlamParams | None = None, map_resolution_m: float | None = None):
         self.params = params if params is not None else SlamParams()
-        self.frontend = ManhattanEstimator(estimator_params)
         self.graph = PoseGraph(self.params.graph)
         self.submaps = SubmapBuilder(self.params.submaps)
         self.stats = LoopStats()
         self.node_frontend: list[Pose2D] = []  # each node's front-end pose
         self.node_points: list[FloatArray] = []  # each node's kept scan points, laser frame
+        self.node_seq: list[int] = []  # each node's pose sequence (-1: unknown)
         self._chain_xy: list[FloatArray] = []  # prefix sums of sequential xy covariances (map)
         self._last_closure_node = -1
-        self._scan_node: list[int] = []  # per scan: its latest node (-1: none yet)
-        self._scan_frontend: list[Pose2D] = []
         self._optimised: list[Pose2D] | None = None
+        self.chunks = ChunkedMap(map_resolution_m) if map_resolution_m is not None else None
 
-    # ------------------------------------------------------------------ per scan
-    def process(self, scan: LaserScan) -> PoseEstimate:
-        """The front end's estimate for `scan`; a keyframe also becomes a graph node."""
-        estimate = self.frontend.process(scan)
-        self.observe(scan, estimate)
-        return estimate
+    @property
+    def node_count(self) -> int:
+        return len(self.node_frontend)
 
-    def observe(self, scan: LaserScan, estimate: PoseEstimate) -> None:
-        """The back end's half of `process`, for callers that time the front end alone."""
-        if self.params.loop_closure and estimate.is_keyframe:
-            t0 = time.perf_counter()
-            self._add_node(scan, estimate)
-            self.stats.total_s += time.perf_counter() - t0
-        self._scan_node.append(len(self.node_frontend) - 1)
-        self._scan_frontend.append(estimate.pose)
-
-    def _add_node(self, scan: LaserScan, estimate: PoseEstimate) -> None:
-        pose = estimate.pose
-        cov_map = np.asarray(estimate.covariance, dtype=np.float64).reshape(3, 3)
+    def add_node(
+        self,
+        scan: LaserScan,
+        pose: Pose2D,
+        covariance: Sequence[float],
+        flags: int,
+        seq: int = -1,
+    ) -> bool:
+        """A keyframe becomes a node; True when a loop closure was accepted at it."""
+        t0 = time.perf_counter()
+        accepted = self.stats.accepted
+        self._optimised = None
+        cov_map = np.asarray(covariance, dtype=np.float64).reshape(3, 3)
         if self.node_frontend:
             prev = self.node_frontend[-1]
             guess = self.graph.estimate(len(self.node_frontend) - 1).compose(prev.between(pose))
@@ -108,7 +113,7 @@ class SlamSession:
             self._chain_xy.append(self._chain_xy[-1] + cov_map[:2, :2])
         else:
             self._chain_xy.append(np.zeros((2, 2)))
-        if self.params.heading_priors and not estimate.flags & _NOT_ANCHORED:
+        if self.params.heading_priors and not PoseFlag(flags) & _NOT_ANCHORED:
             self.graph.add_heading_prior(
                 node, pose.theta_rad, math.radians(self.params.heading_prior_sigma_deg)
             )
@@ -117,15 +122,20 @@ class SlamSession:
         kept = self.submaps.node_points(pts)
         self.node_frontend.append(pose)
         self.node_points.append(kept)
+        self.node_seq.append(seq)
         self.submaps.add_node(node, pose, kept, scan)
+        if self.chunks is not None:
+            self.chunks.add_node(node, pose, scan)
         if node % self.params.update_every_nodes == 0:
-            t0 = time.perf_counter()
+            t1 = time.perf_counter()
             self.graph.update()
-            self.stats.optimise_s += time.perf_counter() - t0
+            self.stats.optimise_s += time.perf_counter() - t1
         if node % self.params.loops.search_every_nodes == 0:
-            t0 = time.perf_counter()
+            t1 = time.perf_counter()
             self._search(node)
-            self.stats.search_s += time.perf_counter() - t0
+            self.stats.search_s += time.perf_counter() - t1
+        self.stats.total_s += time.perf_counter() - t0
+        return self.stats.accepted > accepted
 
     # ------------------------------------------------------------------ loop search
     def _chain_cov(self, a: int, b: int) -> FloatArray:
@@ -164,7 +174,8 @@ class SlamSession:
             )[:2, :2]
             result = verify(sub, query, points, guess, cov_a, p)
             if not result.accepted:
-                self.stats.rejected[result.reason] += 1
+                self.stats.rejected[result.reason] = self.stats.rejected.get(result.reason, 0) + 1
+                self.stats.recent_rejected.append(result)
                 continue
             assert result.relative is not None
             assert result.cov_xy is not None
@@ -182,27 +193,92 @@ class SlamSession:
 
     # ------------------------------------------------------------------ results
     def finish(self) -> list[Pose2D]:
-        """Final batch optimisation; returns the corrected pose of every scan processed."""
-        if self.params.loop_closure and self.node_frontend:
+        """Final batch optimisation (offline); returns the optimised nodes."""
+        if self.node_frontend:
             t0 = time.perf_counter()
             self._optimised = self.graph.optimize_batch()
             self.stats.optimise_s += time.perf_counter() - t0
             self.stats.total_s += time.perf_counter() - t0
-        return self.corrected_poses()
+        return self.node_poses()
 
     def node_poses(self) -> list[Pose2D]:
         if self._optimised is not None:
             return list(self._optimised)
         return self.graph.estimates()
 
+    def corrections(self) -> list[Pose2D]:
+        """Per node: optimised ∘ front-end⁻¹, what moves a front-end pose into the graph."""
+        return [
+            opt.compose(fe.inverse())
+            for opt, fe in zip(self.node_poses(), self.node_frontend, strict=True)
+        ]
+
+    def latest_correction(self) -> Pose2D:
+        """The newest node's correction (identity before the first node): a front-end pose
+        after it, moved by this, is where the graph puts it now."""
+        if not self.node_frontend:
+            return Pose2D(0.0, 0.0, 0.0)
+        node = len(self.node_frontend) - 1
+        return self.graph.estimate(node).compose(self.node_frontend[node].inverse())
+
+
+class SlamSession:
+    """Front end plus back end for one robot's session (pure computation, no IO)."""
+
+    def __init__(
+        self, estimator_params: EstimatorParams | None = None, params: SlamParams | None = None
+    ) -> None:
+        self.params = params if params is not None else SlamParams()
+        self.frontend = ManhattanEstimator(estimator_params)
+        self.backend = SlamBackend(self.params)
+        self._scan_node: list[int] = []  # per scan: its latest node (-1: none yet)
+        self._scan_frontend: list[Pose2D] = []
+
+    @property
+    def graph(self) -> PoseGraph:
+        return self.backend.graph
+
+    @property
+    def submaps(self) -> SubmapBuilder:
+        return self.backend.submaps
+
+    @property
+    def stats(self) -> LoopStats:
+        return self.backend.stats
+
+    @property
+    def node_frontend(self) -> list[Pose2D]:
+        return self.backend.node_frontend
+
+    # ------------------------------------------------------------------ per scan
+    def process(self, scan: LaserScan) -> PoseEstimate:
+        """The front end's estimate for `scan`; a keyframe also becomes a graph node."""
+        estimate = self.frontend.process(scan)
+        self.observe(scan, estimate)
+        return estimate
+
+    def observe(self, scan: LaserScan, estimate: PoseEstimate) -> None:
+        """The back end's half of `process`, for callers that time the front end alone."""
+        if self.params.loop_closure and estimate.is_keyframe:
+            self.backend.add_node(scan, estimate.pose, estimate.covariance, int(estimate.flags))
+        self._scan_node.append(self.backend.node_count - 1)
+        self._scan_frontend.append(estimate.pose)
+
+    # ------------------------------------------------------------------ results
+    def finish(self) -> list[Pose2D]:
+        """Final batch optimisation; returns the corrected pose of every scan processed."""
+        if self.params.loop_closure and self.backend.node_count:
+            self.backend.finish()
+        return self.corrected_poses()
+
+    def node_poses(self) -> list[Pose2D]:
+        return self.backend.node_poses()
+
     def corrected_poses(self) -> list[Pose2D]:
         """Every scan's front-end pose moved by its latest node's correction."""
-        if not self.node_frontend:
+        if not self.backend.node_count:
             return list(self._scan_frontend)
-        nodes = self.node_poses()
-        corrections = [
-            opt.compose(fe.inverse()) for opt, fe in zip(nodes, self.node_frontend, strict=True)
-        ]
+        corrections = self.backend.corrections()
         out = []
         for node, pose in zip(self._scan_node, self._scan_frontend, strict=True):
             out.append(pose if node < 0 else corrections[node].compose(pose))

@@ -2,6 +2,7 @@
 // Plain browser JavaScript, no dependencies, no build step. Talks only to this origin:
 //   GET  /sessions, /sessions/{id}, /sessions/{id}/trajectory (paged), /sessions/{id}/map.yaml,
 //        /sessions/{id}/map.png?trajectory=false&robot=false   (we draw those ourselves)
+//        /sessions/{id}/graph?nodes=false   (accepted loop closures, drawn as lines)
 //   SSE  /sessions/{id}/pose/stream   (event: pose, data: PoseView JSON), read with fetch()
 //   POST /sessions, /sessions/{id}/stop|reset|save
 // Every request carries `Authorization: Bearer <token>` when a token is set: the Token field,
@@ -61,9 +62,13 @@
   // downloaded image draw the trajectory and the robot alike.
   const TRAJECTORY_RGB = [222, 74, 44];
   const ROBOT_RGB = [18, 140, 96];
+  // Accepted loop closures (GET /sessions/{id}/graph), the Foxglove view's colour.
+  const CLOSURE_RGB = [38, 99, 235];
   const rgb = (c, a = 1) => `rgba(${c[0]}, ${c[1]}, ${c[2]}, ${a})`;
 
   const state = {
+    closures: [], // accepted loop closures: [[x0, y0], [x1, y1]] at the optimised poses
+    closuresKey: null, // "session:accepted" of the trajectory loaded last
     sessions: [],
     sessionId: null,
     session: null,
@@ -248,6 +253,8 @@
     state.mapTried = false;
     state.mapKey = null;
     state.nextMapAt = 0;
+    state.closures = [];
+    state.closuresKey = null;
     state.traj = [];
     state.lastSeq = -1;
     state.pose = null;
@@ -585,6 +592,7 @@
         renderSession();
         break;
       }
+      await refreshClosures(id);
     } catch (err) {
       // 404 until the first scan: keep the placeholder.
     } finally {
@@ -596,6 +604,20 @@
       // Big maps on slow links: never spend more than a quarter of the time downloading.
       state.nextMapAt = performance.now() + 3 * (performance.now() - t0);
     }
+  }
+
+  // The accepted loop closures, drawn as lines; a new one moved the whole trajectory (the
+  // server corrects every pose by the pose graph), so the trajectory is loaded again.
+  async function refreshClosures(id) {
+    const g = await (await api("GET", sessionPath(id, "graph") + "?nodes=false")).json();
+    if (state.sessionId !== id) return;
+    const accepted = (g.closures || []).filter((c) => c.accepted);
+    state.closures = accepted.map((c) => [[c.from_x, c.from_y], [c.to_x, c.to_y]]);
+    const key = `${id}:${g.loop_closures ? g.loop_closures.accepted : 0}`;
+    if (state.closuresKey !== null && state.closuresKey !== key) loadTrajectory(id);
+    state.closuresKey = key;
+    document.body.dataset.loopClosures = String(accepted.length);
+    state.dirty = true;
   }
 
   // Binary PGM (P5, maxval < 256) to a canvas in the page's colours: map_server greys
@@ -739,6 +761,19 @@
       ctx.arc(sx(x0), sy(y0), 5, 0, 2 * Math.PI);
       ctx.fill();
       ctx.stroke();
+    }
+
+    if (state.closures.length) {
+      ctx.strokeStyle = rgb(CLOSURE_RGB);
+      ctx.lineWidth = 1.5;
+      ctx.setLineDash([4, 3]);
+      ctx.beginPath();
+      for (const [[x0, y0], [x1, y1]] of state.closures) {
+        ctx.moveTo(sx(x0), sy(y0));
+        ctx.lineTo(sx(x1), sy(y1));
+      }
+      ctx.stroke();
+      ctx.setLineDash([]);
     }
 
     const p = state.pose;

@@ -15,6 +15,7 @@ import logging
 import math
 import signal
 import subprocess
+import time
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -293,6 +294,23 @@ def map_shares(
 
 
 @pytest.mark.timeout(180)
+def wait_map_settled(service: Any, session_id: str) -> None:
+    """The back end draws the map in its own thread, up to a second after its last node:
+    until it has every node and the map has not changed for longer than that."""
+    last: dict[str, Any] = {"pgm": b"", "since": 0.0}
+
+    def settled() -> bool:
+        graph = service.json(f"/sessions/{session_id}/graph?nodes=false")
+        pgm = service.get(f"/sessions/{session_id}/map.pgm").content
+        pgm += service.get(f"/sessions/{session_id}/map.yaml").content  # the origin too
+        now = time.monotonic()
+        if pgm != last["pgm"]:
+            last.update(pgm=pgm, since=now)
+        return bool(graph["loop_closures"]["pending"] == 0 and now - last["since"] > 3.0)
+
+    wait_for(settled, 30, "the back end's final map", period_s=0.25)
+
+
 def test_live_map_page(
     request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
@@ -364,6 +382,7 @@ def test_live_map_page(
         )
         stop_agent(agent)
         poses_total = wait_until_still(client, session.id)
+        wait_map_settled(service, session.id)
         fetched = len(map_fetches)
 
         def map_refetched() -> bool:

@@ -17,6 +17,7 @@ from service.app.api.bodies import JsonBodyRoute
 from service.app.api.deps import Control, Read, ReadOrQuery, Runtime, Sessions, get_sessions
 from service.app.api.schemas import (
     ID_PATTERN,
+    Graph,
     PoseView,
     SavedMap,
     Session,
@@ -207,6 +208,25 @@ def read_trajectory(
         next_seq=next_seq,
         total=total,
     )
+
+
+@router.get(
+    "/{session_id}/graph",
+    response_model=Graph,
+    dependencies=Read,
+    summary="Pose graph (loop closure)",
+    description="The back end's pose graph: every node (its optimised pose and the front "
+    "end's), the sequential edges, the accepted loop closures and the latest refused searches "
+    "(with their score and reason), and the counters. Empty (no nodes) with loop closure off. "
+    "The trajectory, the pose and the map are drawn from the same graph. `?nodes=false` "
+    "leaves out the nodes and edges (the live page polls the closures and counters).",
+    responses=errors(401, 404, 422, 503),
+)
+def read_graph(
+    session: SessionDep,
+    nodes: Annotated[bool, Query(description="include the nodes and edges")] = True,
+) -> Graph:
+    return Graph.of(session.id, session.graph(), nodes=nodes)
 
 
 _PNG: dict[int | str, dict[str, Any]] = {

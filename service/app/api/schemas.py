@@ -11,6 +11,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from clients.wire import Pose, PoseFlag
+from service.app.backend import GraphSnapshot
 from service.app.sessions import DamageSummary, SessionInfo
 from service.app.store import SavedMapMeta
 
@@ -90,6 +91,106 @@ class SessionDamage(BaseModel):
         )
 
 
+class LoopClosureCounts(BaseModel):
+    """The back end's counters (loop closure on)."""
+
+    accepted: int = Field(description="loop closures accepted into the pose graph")
+    rejected: dict[str, int] = Field(
+        description="searches refused, by reason: low_score, ambiguous, inconsistent, few_points"
+    )
+    nodes: int = Field(description="nodes (keyframes) in the pose graph")
+    pending: int = Field(description="nodes queued for the back end, not yet in the graph")
+
+    @classmethod
+    def of(cls, snap: GraphSnapshot) -> LoopClosureCounts:
+        return cls(
+            accepted=snap.accepted,
+            rejected=dict(sorted(snap.rejected.items())),
+            nodes=snap.nodes,
+            pending=snap.pending,
+        )
+
+
+class GraphNode(BaseModel):
+    id: int = Field(description="node index, 0-based")
+    sequence: int = Field(description="the pose sequence of the node's scan")
+    x: float = Field(description="optimised pose, metres, map frame")
+    y: float
+    theta: float = Field(description="radians")
+    frontend_x: float = Field(description="the front end's pose of the node (before the graph)")
+    frontend_y: float
+    frontend_theta: float
+
+
+class GraphEdge(BaseModel):
+    from_node: int
+    to_node: int
+
+
+class GraphClosure(BaseModel):
+    from_node: int = Field(description="the older node (the anchor of the submap searched)")
+    to_node: int = Field(description="the node whose scan was placed in that submap")
+    score: float = Field(description="mean likelihood of the scan's points at the best placement")
+    accepted: bool
+    reason: str = Field(description="accepted, low_score, ambiguous, inconsistent, few_points")
+    from_x: float = Field(description="the older node's optimised position, metres, map frame")
+    from_y: float
+    to_x: float = Field(description="the query node's optimised position")
+    to_y: float
+
+
+class Graph(BaseModel):
+    """The session's pose graph: nodes, sequential edges and loop closures."""
+
+    session_id: str
+    revision: int = Field(description="grows whenever the graph changes")
+    nodes: list[GraphNode]
+    edges: list[GraphEdge] = Field(description="sequential constraints, node i to i + 1")
+    closures: list[GraphClosure] = Field(
+        description="every accepted closure, then the latest refused searches (at most 100)"
+    )
+    loop_closures: LoopClosureCounts
+
+    @classmethod
+    def of(cls, session_id: str, snap: GraphSnapshot, *, nodes: bool = True) -> Graph:
+        fe, opt, seq = snap.frontend.tolist(), snap.optimised.tolist(), snap.node_seq.tolist()
+        n = snap.nodes if nodes else 0
+        return cls(
+            session_id=session_id,
+            revision=snap.revision,
+            nodes=[
+                GraphNode(
+                    id=i,
+                    sequence=seq[i],
+                    x=opt[i][0],
+                    y=opt[i][1],
+                    theta=opt[i][2],
+                    frontend_x=fe[i][0],
+                    frontend_y=fe[i][1],
+                    frontend_theta=fe[i][2],
+                )
+                for i in range(n)
+            ],
+            edges=[GraphEdge(from_node=i, to_node=i + 1) for i in range(n - 1)],
+            closures=[
+                GraphClosure(
+                    from_node=c.from_node,
+                    to_node=c.to_node,
+                    score=c.score,
+                    accepted=c.accepted,
+                    reason=c.reason,
+                    from_x=opt[c.from_node][0],
+                    from_y=opt[c.from_node][1],
+                    to_x=opt[c.to_node][0],
+                    to_y=opt[c.to_node][1],
+                )
+                for c in snap.closures
+                if max(c.from_node, c.to_node) < snap.nodes
+            ],
+            loop_closures=LoopClosureCounts.of(snap),
+        )
+
+
 class Session(BaseModel):
     id: str
     robot_id: str
@@ -105,7 +206,10 @@ class Session(BaseModel):
     poses: int = Field(description="length of the trajectory")
     resolution_m: float
     use_odometry: bool
-    last_pose: PoseView | None
+    last_pose: PoseView | None = Field(description="where the pose graph puts the latest pose")
+    loop_closures: LoopClosureCounts | None = Field(
+        default=None, description="the back end's counters; null with loop closure off"
+    )
 
     @classmethod
     def of(cls, info: SessionInfo) -> Session:
@@ -121,6 +225,7 @@ class Session(BaseModel):
             last_pose=PoseView.of(info.last_pose) if info.last_pose is not None else None,
             status=info.status,
             damage=SessionDamage.of(info.damage),
+            loop_closures=(LoopClosureCounts.of(info.graph) if info.graph is not None else None),
         )
 
 

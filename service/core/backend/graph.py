@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import gtsam
 import numpy as np
@@ -88,6 +89,9 @@ class PoseGraph:
         self._new_values = gtsam.Values()
         self._estimate: gtsam.Values | None = None
         self._count = 0
+        # Every factor as plain data (kind, numbers), so the graph can be saved without gtsam
+        # objects (`__getstate__`) and rebuilt (`__setstate__`).
+        self._records: list[tuple[Any, ...]] = []
 
     @property
     def node_count(self) -> int:
@@ -116,15 +120,20 @@ class PoseGraph:
         if node == 0:
             p = self.params
             sigmas = np.array([p.prior_sigma_m, p.prior_sigma_m, p.prior_sigma_rad])
-            noise = gtsam.noiseModel.Diagonal.Sigmas(sigmas)
-            self._add(gtsam.PriorFactorPose2(_key(0), value, noise))
+            self._add_prior(tuple(guess), tuple(float(v) for v in sigmas))
         return node
+
+    def _add_prior(self, pose: tuple[float, ...], sigmas: tuple[float, ...]) -> None:
+        noise = gtsam.noiseModel.Diagonal.Sigmas(np.array(sigmas))
+        self._add(gtsam.PriorFactorPose2(_key(0), gtsam.Pose2(*pose), noise))
+        self._records.append(("prior", pose, sigmas))
 
     def add_sequential(self, a: int, b: int, relative: Pose2D, cov_in_a: FloatArray) -> None:
         """`relative` = pose of b in a's frame, with its covariance in a's frame."""
         noise = gtsam.noiseModel.Gaussian.Covariance(cov_in_a)
         self._add(gtsam.BetweenFactorPose2(_key(a), _key(b), _pose2(relative), noise))
         self.edges.append(Edge(a, b, "sequential"))
+        self._records.append(("between", a, b, tuple(relative), np.array(cov_in_a, np.float64)))
 
     def add_heading_prior(self, node: int, theta_rad: float, sigma_rad: float) -> None:
         base = gtsam.noiseModel.Isotropic.Sigma(1, sigma_rad)
@@ -133,6 +142,7 @@ class PoseGraph:
         )
         self._add(gtsam.PoseRotationPrior2D(_key(node), gtsam.Pose2(0.0, 0.0, theta_rad), robust))
         self.heading_priors += 1
+        self._records.append(("heading", node, float(theta_rad), float(sigma_rad)))
 
     def add_loop(self, a: int, b: int, relative: Pose2D, cov_in_a: FloatArray) -> None:
         loop = (a, b, _pose2(relative), np.array(cov_in_a, dtype=np.float64))
@@ -140,6 +150,47 @@ class PoseGraph:
         huber = gtsam.noiseModel.mEstimator.Huber.Create(self.params.loop_huber_k)
         self._add(self._loop_factor(loop, huber), in_batch=False)
         self.edges.append(Edge(a, b, "loop"))
+
+    # -- saving and rebuilding (checkpoints: plain data, no gtsam objects) --------------------
+
+    def __getstate__(self) -> dict[str, Any]:
+        n = self._count
+        initial = np.array(
+            [tuple(_to_pose(self.initial.atPose2(_key(i)))) for i in range(n)], dtype=np.float64
+        ).reshape(n, 3)
+        current = np.array([tuple(self.estimate(i)) for i in range(n)], dtype=np.float64)
+        return {
+            "params": self.params,
+            "initial": initial,
+            "current": current.reshape(n, 3),
+            "records": list(self._records),
+            "loops": [
+                (a, b, (float(r.x()), float(r.y()), float(r.theta())), cov)
+                for a, b, r, cov in self._loops
+            ],
+        }
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """The same factors again, iSAM2 linearised at the saved estimate (so it stays there)."""
+        self.__init__(state["params"])  # type: ignore[misc]
+        initial = np.asarray(state["initial"], dtype=np.float64)
+        current = np.asarray(state["current"], dtype=np.float64)
+        for i in range(initial.shape[0]):
+            self._count += 1
+            self.initial.insert(_key(i), gtsam.Pose2(*initial[i]))
+            self._new_values.insert(_key(i), gtsam.Pose2(*current[i]))
+        for record in state["records"]:
+            kind = record[0]
+            if kind == "prior":
+                self._add_prior(tuple(record[1]), tuple(record[2]))
+            elif kind == "between":
+                _, a, b, rel, cov = record
+                self.add_sequential(int(a), int(b), Pose2D(*rel), np.asarray(cov))
+            elif kind == "heading":
+                self.add_heading_prior(int(record[1]), float(record[2]), float(record[3]))
+        for a, b, rel, cov in state["loops"]:
+            self.add_loop(int(a), int(b), Pose2D(*rel), np.asarray(cov))
+        self.update()
 
     def update(self) -> None:
         """iSAM2 step with what was added since the last one."""

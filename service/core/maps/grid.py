@@ -274,27 +274,39 @@ class OccupancyGrid:
 
     def snapshot(self) -> GridImage:
         """The map cropped to its known cells; an empty 0 x 0 image before any update."""
-        res = self.resolution_m
         dense, ci0, cj0 = self.log_odds()
-        known = dense != 0.0
-        rows = np.nonzero(known.any(axis=1))[0]
-        cols = np.nonzero(known.any(axis=0))[0]
-        if rows.shape[0] == 0:
-            return GridImage(np.zeros((0, 0), dtype=np.int8), 0.0, 0.0, res)
-        r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-        lo = dense[r0:r1, c0:c1]
-        # Probability in percent through a lookup table over the clamped log-odds range:
-        # far cheaper than exp() over millions of cells.
-        steps = 4096
-        table_lo = np.linspace(self.l_min, self.l_max, steps)
-        table = np.rint(100.0 / (1.0 + np.exp(-table_lo))).astype(np.int8)
-        scale = np.float32((steps - 1) / (self.l_max - self.l_min))
-        idx = ((lo - np.float32(self.l_min)) * scale + np.float32(0.5)).astype(np.int32)
-        occ = table[np.clip(idx, 0, steps - 1)]
-        occ[lo == 0.0] = -1
-        return GridImage(
-            occupancy=occ,
-            origin_x_m=(cj0 + c0) * res,
-            origin_y_m=(ci0 + r0) * res,
-            resolution_m=res,
-        )
+        return log_odds_image(dense, ci0, cj0, self.resolution_m, self.l_min, self.l_max)
+
+
+def log_odds_image(  # noqa: PLR0917 - the cells, where they start, and their scale
+    dense: npt.NDArray[np.float32],
+    ci0: int,
+    cj0: int,
+    resolution_m: float,
+    l_min: float,
+    l_max: float,
+) -> GridImage:
+    """Dense log-odds (cell (ci0, cj0) first) as an image cropped to its known cells."""
+    res = resolution_m
+    known = dense != 0.0
+    rows = np.nonzero(known.any(axis=1))[0]
+    cols = np.nonzero(known.any(axis=0))[0]
+    if rows.shape[0] == 0:
+        return GridImage(np.zeros((0, 0), dtype=np.int8), 0.0, 0.0, res)
+    r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    lo = dense[r0:r1, c0:c1]
+    # Probability in percent through a lookup table over the clamped log-odds range:
+    # far cheaper than exp() over millions of cells.
+    steps = 4096
+    table_lo = np.linspace(l_min, l_max, steps)
+    table = np.rint(100.0 / (1.0 + np.exp(-table_lo))).astype(np.int8)
+    scale = np.float32((steps - 1) / (l_max - l_min))
+    idx = ((lo - np.float32(l_min)) * scale + np.float32(0.5)).astype(np.int32)
+    occ = table[np.clip(idx, 0, steps - 1)]
+    occ[lo == 0.0] = -1
+    return GridImage(
+        occupancy=occ,
+        origin_x_m=(cj0 + c0) * res,
+        origin_y_m=(ci0 + r0) * res,
+        resolution_m=res,
+    )

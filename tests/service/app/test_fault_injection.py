@@ -63,6 +63,7 @@ def base(tmp_path_factory: pytest.TempPathFactory) -> Base:
             feed(runtime, SimRobot("fi"), 50)
             shutil.copytree(root / "live", root / "image")  # kill -9 image: 10 scans uncovered
             poses = session.trajectory()
+            assert session.wait_backend(60)  # the back end draws the map in its own thread
             occupancy = session.map_image().image.occupancy.copy()
         finally:
             runtime.close()
@@ -165,6 +166,7 @@ def test_random_damage_is_survived_and_reported(base: Base, tmp_path: Path, seed
     if is_checkpoint:
         # A damaged checkpoint is never trusted and changes nothing that is served.
         assert session.trajectory() == base.poses
+        assert session.wait_backend(60)
         np.testing.assert_array_equal(session.map_image().image.occupancy, base.occupancy)
         if (
             mutation.kind == "flip"

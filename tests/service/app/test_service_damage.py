@@ -127,6 +127,7 @@ def test_flipped_checkpoint_is_rejected_and_the_map_is_unchanged(
     live = runtime_factory(data)
     session = live.sessions.create("r1", 0.05, True)
     feed(live, SimRobot("r1"), 40)
+    assert session.wait_backend(60)  # the back end draws the map in its own thread
     pgm_before = render.map_pgm(session.map_image())
     live.close()  # a clean shutdown writes a checkpoint
     folder = data / "sessions" / session.id
@@ -143,7 +144,11 @@ def test_flipped_checkpoint_is_rejected_and_the_map_is_unchanged(
     svc = ServiceProc(data)
     svc.start()
     try:
-        assert svc.get(f"/sessions/{session.id}/map.pgm").content == pgm_before
+        wait_for(  # the restored back end draws the map in its own thread
+            lambda: svc.get(f"/sessions/{session.id}/map.pgm").content == pgm_before,
+            30,
+            "the restored map",
+        )
         info = svc.json(f"/sessions/{session.id}")
         assert info["status"] == "degraded"
         damage = info["damage"]
@@ -447,6 +452,7 @@ def test_segments_roll_at_checkpoints_and_retention_prunes_only_covered_scans(
     assert checkpoints == ["checkpoint-000000.000003.mck", "checkpoint-000000.000004.mck"]
     before = sum(p.stat().st_size for p in recording_files(folder))
     expected = session.trajectory()
+    assert session.wait_backend(60)  # the back end draws the map in its own thread
     occupancy = session.map_image().image.occupancy.copy()
 
     # Retention of 0 days: only segments below the older kept checkpoint lose their scans.
@@ -464,6 +470,7 @@ def test_segments_roll_at_checkpoints_and_retention_prunes_only_covered_scans(
     runtime.close()
     again = runtime_factory(data).sessions.get(session.id)
     assert again.trajectory() == expected  # poses kept whole
+    assert again.wait_backend(60)
     assert (again.map_image().image.occupancy == occupancy).all()
     assert again.status == "ok"
 
@@ -476,7 +483,9 @@ def test_checkpoints_are_compressed_data_not_pickles(
     feed(runtime, SimRobot("r1"), 60)
     mapper = session._mapper
     assert mapper is not None
-    pickled = len(pickle.dumps((mapper._estimator, mapper._grid)))  # type: ignore[attr-defined]
+    assert session.wait_backend(60)
+    backend = mapper._backend.state(lambda tree: tree)  # type: ignore[attr-defined]  # in it too
+    pickled = len(pickle.dumps((mapper._estimator, mapper._grid, backend)))  # type: ignore[attr-defined]
     runtime.close()
     (path,) = (tmp_path / "data" / "sessions" / session.id).glob("checkpoint-*.mck")
     assert path.read_bytes().startswith(b"MMCKPT1\n")

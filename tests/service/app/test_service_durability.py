@@ -48,6 +48,8 @@ class Seen:
 def seen(session: MappingSession | Seen) -> Seen:
     if isinstance(session, Seen):
         return session
+    # The back end draws the map in its own thread: every node in it first.
+    assert session.wait_backend(60)
     return Seen(session.info(), session.trajectory(), session.map_snapshot().image.occupancy)
 
 

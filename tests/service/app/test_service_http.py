@@ -256,6 +256,7 @@ def test_openapi_documents_every_route(client: TestClient) -> None:
         ("post", "/sessions/{session_id}/save"),
         ("get", "/sessions/{session_id}/pose"),
         ("get", "/sessions/{session_id}/trajectory"),
+        ("get", "/sessions/{session_id}/graph"),
         ("get", "/sessions/{session_id}/map.png"),
         ("get", "/sessions/{session_id}/map.pgm"),
         ("get", "/sessions/{session_id}/map.yaml"),

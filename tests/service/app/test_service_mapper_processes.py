@@ -37,6 +37,8 @@ def poses(session: MappingSession) -> list[tuple[object, ...]]:
 
 def assert_same_session(a: MappingSession, b: MappingSession) -> None:
     """Same counters, poses (exactly) and map."""
+    assert a.wait_backend(60)  # the back end draws the map in its own thread
+    assert b.wait_backend(60)
     assert a.info().scans_accepted == b.info().scans_accepted
     assert poses(a) == poses(b)
     np.testing.assert_array_equal(a.map_image().image.occupancy, b.map_image().image.occupancy)
