@@ -75,6 +75,8 @@
     map: null, // {bitmap, width, height, info: {resolution, originX, originY}}
     mapKey: null, // session id the map belongs to
     traj: [], // [[x, y], ...] in metres
+    trajLoaded: false, // the session's trajectory so far came from the server (not the stream only)
+    trajLoading: false,
     lastSeq: -1,
     pose: null,
     es: null,
@@ -256,6 +258,7 @@
     state.closures = [];
     state.closuresKey = null;
     state.traj = [];
+    state.trajLoaded = false;
     state.lastSeq = -1;
     state.pose = null;
     state.rate = null;
@@ -425,6 +428,8 @@
   }
 
   async function loadTrajectory(id) {
+    if (state.trajLoading) return;
+    state.trajLoading = true;
     try {
       let body = await trajectoryPage(id, 0, 1);
       const total = body.total || 0;
@@ -445,10 +450,13 @@
       // Poses that arrived on the stream while the trajectory was loading go after it.
       for (const [x, y, seq] of state.traj) if (seq > last) pushPoint(pts, x, y, seq);
       state.traj = pts;
+      state.trajLoaded = true;
       state.lastSeq = Math.max(state.lastSeq, last);
       state.dirty = true;
     } catch (err) {
-      /* a fresh or restoring session has no trajectory yet; the stream fills it */
+      /* a fresh or restoring session has no trajectory yet: loaded again at the next pose */
+    } finally {
+      state.trajLoading = false;
     }
   }
 
@@ -471,6 +479,8 @@
     state.lastSeq = p.sequence;
     state.pose = p;
     pushPoint(state.traj, p.x, p.y, p.sequence);
+    // Poses from before the stream connected are the server's: fetch them once it has some.
+    if (!state.trajLoaded && state.sessionId && p.sequence > 0) loadTrajectory(state.sessionId);
     if (state.follow) {
       state.view.cx = p.x;
       state.view.cy = p.y;

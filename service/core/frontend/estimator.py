@@ -194,6 +194,13 @@ class ManhattanEstimator:
         self._field_params = FieldMatchParams()
         self._increment_rad = math.radians(0.25)  # the current scan's beam step, set by `_points`
 
+    def __getstate__(self) -> dict[str, object]:
+        # The reference is a cache (rebuilt from the keyframes on first use): its 2-D field
+        # alone is megabytes, which a checkpoint need not carry.
+        state = dict(self.__dict__)
+        state["_ref"] = None
+        return state
+
     def __setstate__(self, state: dict[str, object]) -> None:
         # Checkpoints pickled by an older version lack the newer caches: start them empty.
         self.__dict__.update(state)

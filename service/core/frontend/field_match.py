@@ -114,7 +114,10 @@ def local_field(
     prior = float(base.fine[known].mean()) if known.any() else 0.0
     # Unknown cells read the prior straight from `fine` (what `axis_response` interpolates).
     fine = np.where(known, base.fine, np.float32(prior)).astype(np.float32)
-    return replace(base, fine=fine, known=known.astype(np.float32), unknown_value=prior)
+    # Only `fine` is read (`_bilinear`): the coarse bound and the mask are not kept (memory:
+    # a 30 m reach is a 1,200-cell square).
+    empty = np.zeros((0, 0), dtype=np.float32)
+    return replace(base, fine=fine, coarse=empty, known=empty, unknown_value=prior)
 
 
 def _bilinear(field: LikelihoodField, xy_m: FloatArray) -> FloatArray:
