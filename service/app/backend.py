@@ -189,6 +189,9 @@ class LiveBackend:
         self._revision = 0
         self._correction = Pose2D(0.0, 0.0, 0.0)
         self._snapshot = EMPTY_SNAPSHOT
+        # Work not yet in `_snapshot` (nodes queued or being added; 1 for a restored or reset
+        # core): a snapshot read between a submit and the next view must not say "pending 0".
+        self._unpublished = 0
         self._image: GridImage | None = None
         self._image_revision = 0
         self._image_due = False
@@ -207,6 +210,7 @@ class LiveBackend:
             if self._closed:
                 return
             self._queue.append((scan, pose, cov, int(flags), int(seq)))
+            self._unpublished += 1
         self._scheduler.schedule(self)
 
     def correction(self) -> tuple[int, Pose2D, int]:
@@ -216,7 +220,10 @@ class LiveBackend:
 
     def snapshot(self) -> GraphSnapshot:
         with self._lock:
-            return self._snapshot
+            snap = self._snapshot
+            if snap.pending != self._unpublished:
+                snap = replace(snap, pending=self._unpublished)
+            return snap
 
     def image(self) -> GridImage | None:
         with self._lock:
@@ -260,7 +267,7 @@ class LiveBackend:
             if self._view_due and (
                 closure or not queued or now - self._last_view_s >= VIEW_PERIOD_S
             ):
-                self._publish_view(queued)
+                self._publish_view()
             if self._image_due and (closure or now - self._last_render_s >= RENDER_PERIOD_S):
                 self._render()
             if not queued and self._image_due and not self._timer_armed:
@@ -279,7 +286,7 @@ class LiveBackend:
         self._timer_armed = False
         self._scheduler.schedule(self)
 
-    def _publish_view(self, queued: int) -> None:
+    def _publish_view(self) -> None:
         core = self._core
         n = core.node_count
         fe = np.array(core.node_frontend, dtype=np.float64).reshape(n, 3)
@@ -298,13 +305,14 @@ class LiveBackend:
                 closures=closures,
                 accepted=core.stats.accepted,
                 rejected=dict(core.stats.rejected),
-                pending=queued,
+                pending=len(self._queue),
                 errors=self.errors,
                 image_revision=self._image_revision,
                 map_bytes=core.chunks.nbytes if core.chunks is not None else 0,
                 corrections=_corrections(fe, opt),
             )
             self._snapshot = snap
+            self._unpublished = len(self._queue)
         self._view_due = False
         self._last_view_s = time.monotonic()
 
@@ -356,6 +364,7 @@ class LiveBackend:
                 self._generation += 1
                 self._core = core
                 self._queue = deque(state.get("queued", ()))
+                self._unpublished = len(self._queue) + 1
                 self._correction = _snap(core.latest_correction())
                 self._revision += 1
             self._view_due = self._image_due = True
@@ -366,6 +375,7 @@ class LiveBackend:
             with self._lock:
                 self._generation += 1
                 self._queue.clear()
+                self._unpublished = 1
                 self._core = SlamBackend(self._params, map_resolution_m=self._resolution_m)
                 self._correction = Pose2D(0.0, 0.0, 0.0)
                 self._revision += 1

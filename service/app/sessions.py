@@ -935,14 +935,17 @@ class MappingSession:
 
     # -- the back end's graph (loop closure) -------------------------------------------------
 
-    def _graph_snapshot(self) -> GraphSnapshot:
+    def _graph_snapshot(self, *, fresh: bool = False) -> GraphSnapshot:
         """The latest graph the mapper published (lock held): asked again when the mapper
-        reported a newer revision than the one held, or a second after the last ask."""
+        reported a newer revision than the one held, a second after the last ask, or when
+        `fresh` (a client asking for the graph itself: a node queued since the last scan's
+        answer is not in the revision that answer carried)."""
         mapper = self._mapper
         if mapper is None or self._restoring:
             return self._graph
         now = time.monotonic()
-        if self._graph.revision == self._graph_rev_seen and now - self._graph_fetched_s < 1.0:
+        recent = now - self._graph_fetched_s < 1.0
+        if not fresh and self._graph.revision == self._graph_rev_seen and recent:
             return self._graph
         try:
             snap = mapper.graph(self._graph.revision)
@@ -965,7 +968,7 @@ class MappingSession:
         """The back end's graph for `GET /sessions/{id}/graph` (empty without a back end)."""
         with self.lock:
             self._ready_for_reads()
-            return self._graph_snapshot()
+            return self._graph_snapshot(fresh=True)
 
     def wait_backend(self, timeout_s: float = 60.0) -> bool:
         """Until the back end has every node and its map drawn (tests, benchmarks, tools)."""
