@@ -567,14 +567,17 @@ class ManhattanEstimator:
         # scan, a small motion, so a few points suffice (ACES: a robot stopped in a corridor
         # was predicted on at its last speed).
         if p.previous_scan_fallback and not odom_prior and self._last_scan is not None:
+            last = self._last_scan
+            last_w: FloatArray | None = None  # the weights against it, once for both axes
             for axis in (0, 1):
                 if not matches[axis].ambiguous:
                     continue
-                last = self._last_scan
-                last_w = cur_w_all
-                if cut:
-                    last_xy = (last.pose.x_m, last.pose.y_m)
-                    last_w = _covered(cur, cur_w_all, centre_xy, last_xy, last.range_m - half_t)
+                if last_w is None:
+                    last_w = cur_w_all
+                    if cut:
+                        last_xy = (last.pose.x_m, last.pose.y_m)
+                        radius = last.range_m - half_t
+                        last_w = _covered(cur, cur_w_all, centre_xy, last_xy, radius)
                 curve = correlate_axis(
                     self._last_scan_density(axis),
                     cur[:, axis],

@@ -104,7 +104,9 @@ def local_field(
     """The field of the local map's points; known within `radius_m` of `centre_xy_m` (what the
     map's sensor reached), unknown beyond."""
     base = likelihood_field(
-        points_map_m, SubmapParams(resolution_m=params.resolution_m, hit_sigma_m=params.hit_sigma_m)
+        points_map_m,
+        SubmapParams(resolution_m=params.resolution_m, hit_sigma_m=params.hit_sigma_m),
+        bound=False,
     )
     h, w = base.fine.shape
     res = base.resolution_m
@@ -114,10 +116,10 @@ def local_field(
     prior = float(base.fine[known].mean()) if known.any() else 0.0
     # Unknown cells read the prior straight from `fine` (what `axis_response` interpolates).
     fine = np.where(known, base.fine, np.float32(prior)).astype(np.float32)
-    # Only `fine` is read (`_bilinear`): the coarse bound and the mask are not kept (memory:
-    # a 30 m reach is a 1,200-cell square).
+    # Only `fine` is read (`_bilinear`): the mask is not kept (memory: a 30 m reach is a
+    # 1,200-cell square), and the coarse bound was never built.
     empty = np.zeros((0, 0), dtype=np.float32)
-    return replace(base, fine=fine, coarse=empty, known=empty, unknown_value=prior)
+    return replace(base, fine=fine, known=empty, unknown_value=prior)
 
 
 def _bilinear(field: LikelihoodField, xy_m: FloatArray) -> FloatArray:

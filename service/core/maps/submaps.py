@@ -120,11 +120,16 @@ def _sliding_max(grid: F32Array, k: int) -> F32Array:
 
 
 def likelihood_field(
-    points_m: FloatArray, params: SubmapParams, observed: OccupancyGrid | None = None
+    points_m: FloatArray,
+    params: SubmapParams,
+    observed: OccupancyGrid | None = None,
+    *,
+    bound: bool = True,
 ) -> LikelihoodField:
     """The field of an (N, 2) point set, N > 0, with a margin of 3σ around it.
 
     `observed` (same resolution) gives the known mask; without it every cell is known.
+    `bound` False leaves out the coarse upper bound (empty), for callers that never search it.
     """
     res = params.resolution_m
     radius = max(1, math.ceil(3.0 * params.hit_sigma_m / res))
@@ -156,7 +161,7 @@ def likelihood_field(
         ((ci[:, None] + di.ravel()[None, :]).ravel(), (cj[:, None] + dj.ravel()[None, :]).ravel()),
         np.broadcast_to(bump.ravel(), (cells.shape[0], bump.size)).ravel(),
     )
-    coarse = _sliding_max(fine, params.coarse_factor)
+    coarse = _sliding_max(fine, params.coarse_factor) if bound else np.zeros((0, 0), np.float32)
     if dense is not None and dense.size:
         seen = np.zeros((h, w), dtype=np.float32)
         r0, c0 = int(ci0 - lo[1]), int(cj0 - lo[0])
@@ -166,7 +171,8 @@ def likelihood_field(
     else:
         known = np.ones((h, w), dtype=np.float32)
     prior = float((fine * known).sum() / max(float(known.sum()), 1.0))
-    np.maximum(coarse, np.float32(prior), out=coarse)  # the bound covers unknown cells too
+    if bound:
+        np.maximum(coarse, np.float32(prior), out=coarse)  # the bound covers unknown cells too
     origin = (float(lo[0] * res), float(lo[1] * res))
     return LikelihoodField(origin, res, fine, coarse, params.coarse_factor, known, prior)
 
