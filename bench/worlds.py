@@ -777,8 +777,12 @@ def _finite(value: Any) -> Any:
 def _select(
     set_name: str, families: Sequence[str] | None, seeds: Sequence[int] | None
 ) -> list[tuple[str, int]]:
-    from sensor_agent.sim.families import world_set
+    from sensor_agent.sim.families import TEST_SEEDS, TUNING_SEEDS, world_set
 
+    if families and seeds:
+        # Any seed of the set's range, not only the fixed list (e.g. more tuning worlds).
+        seed_range = TUNING_SEEDS if set_name == "tuning" else TEST_SEEDS
+        return [(f, s) for f in families for s in seeds if s in seed_range]
     worlds = list(world_set(set_name))  # type: ignore[arg-type]
     if families:
         worlds = [w for w in worlds if w[0] in families]
@@ -840,7 +844,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_run.add_argument(
         "--family", action="append", choices=FAMILIES, help="only these (repeatable)"
     )
-    p_run.add_argument("--seed", type=int, action="append", help="only these seeds (repeatable)")
+    p_run.add_argument(
+        "--seed",
+        type=int,
+        action="append",
+        help="only these seeds (repeatable); with --family, any seed of the set's range",
+    )
     p_run.add_argument("--jobs", type=int, default=2, help="worlds in parallel (default: 2)")
     p_run.add_argument("--loop-closure", action="store_true", help="the back end on too")
     p_run.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR")

@@ -70,6 +70,7 @@ class MapRun:
     optimised: list[Pose2D] | None = None  # every scan's pose after loop closure (None: off)
     loops: LoopStats | None = None
     backend_s: float = 0.0  # the back end, all of it: nodes, submaps, loop search, optimisation
+    wall_families_deg: list[float] = field(default_factory=lambda: [0.0])  # the estimator's
 
     @property
     def frontend_poses(self) -> list[Pose2D]:
@@ -164,6 +165,7 @@ def map_scans(
             grid.integrate(laser, run.optimised[index])
             run.integrate_ns.append(time.perf_counter_ns() - t1)
     run.backend_s = slam.stats.total_s
+    run.wall_families_deg = [round(math.degrees(a), 2) for a in slam.frontend.wall_families_rad]
     run.wall_s = time.perf_counter() - start
     return run
 
@@ -252,6 +254,8 @@ def build_report(
         "scans_per_second": round(run.scans / run.wall_s, 1) if run.wall_s > 0 else None,
         "backend_s": round(run.backend_s, 3),
         "loop_closures": _loop_report(run.loops),
+        # Angles (degrees, modulo 90) of the wall families the heading was measured on.
+        "wall_families_deg": run.wall_families_deg,
     }
     if input_info is not None:
         report["input"] = input_info
@@ -439,6 +443,12 @@ def run_map(args: argparse.Namespace) -> int:
         f"below 0.5), {report['trajectory_length_m']:.1f} m travelled, "
         f"map {report['map']['width_m']:.1f} x {report['map']['height_m']:.1f} m -> {args.out}\n"
     )
+    families = report["wall_families_deg"]
+    if len(families) > 1:
+        sys.stdout.write(
+            f"wall families at {', '.join(f'{a:g}' for a in families)} deg "
+            "(walls not parallel or perpendicular to the first ones)\n"
+        )
     loops = report["loop_closures"]
     if loops is not None:
         rejected = sum(loops["rejected"].values())

@@ -46,9 +46,10 @@ class CovarianceTracker:
     """Variance of the current pose relative to the latest keyframe, per map axis (x, y, θ)."""
 
     params: CovarianceParams = field(default_factory=CovarianceParams)
-    var_x: float = 0.0
+    var_x: float = 0.0  # along the first axis of the wall family at `frame_rad`
     var_y: float = 0.0
     var_theta: float = 0.0
+    frame_rad: float = 0.0  # the axes the matches measure along (the map's, or a wing's)
 
     def restart(self) -> None:
         """A new keyframe: the following poses are measured against it."""
@@ -61,9 +62,17 @@ class CovarianceTracker:
         heading_anchored: bool,
         *,
         degenerate: bool = False,
+        frame_rad: float = 0.0,
     ) -> Covariance3:
-        """One scan: a measured axis takes its match's variance, an unmeasured one grows."""
+        """One scan: a measured axis takes its match's variance, an unmeasured one grows.
+
+        The σ are along the axes of the wall family at `frame_rad`. When those axes change,
+        what was carried is kept as the larger of the two (isotropic: no axis is trusted more).
+        """
         p = self.params
+        if frame_rad != getattr(self, "frame_rad", 0.0):
+            self.var_x = self.var_y = max(self.var_x, self.var_y)
+            self.frame_rad = frame_rad
         step = p.degenerate_sigma_m if degenerate else p.predicted_sigma_m
         self.var_x = sigma_x_m**2 if sigma_x_m is not None else self.var_x + step**2
         self.var_y = sigma_y_m**2 if sigma_y_m is not None else self.var_y + step**2
@@ -75,4 +84,11 @@ class CovarianceTracker:
 
     def covariance(self) -> Covariance3:
         """Row-major 3×3 (x, y, θ), map axes."""
-        return (self.var_x, 0.0, 0.0, 0.0, self.var_y, 0.0, 0.0, 0.0, self.var_theta)
+        phi = getattr(self, "frame_rad", 0.0)
+        if phi == 0.0:
+            return (self.var_x, 0.0, 0.0, 0.0, self.var_y, 0.0, 0.0, 0.0, self.var_theta)
+        c, s = math.cos(phi), math.sin(phi)  # R diag(var_x, var_y) Rᵀ
+        xx = c * c * self.var_x + s * s * self.var_y
+        yy = s * s * self.var_x + c * c * self.var_y
+        xy = c * s * (self.var_x - self.var_y)
+        return (xx, xy, 0.0, xy, yy, 0.0, 0.0, 0.0, self.var_theta)

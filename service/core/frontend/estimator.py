@@ -33,6 +33,7 @@ from service.core.frontend.field_match import (
     local_field,
     surface_points,
 )
+from service.core.frontend.frames import WallFrames
 from service.core.frontend.gated import SortedReference, correlate_axis_gated
 from service.core.frontend.heading import (
     QUARTER,
@@ -117,6 +118,10 @@ class _Keyframe:
     direction_counts: npt.NDArray[np.intp] = field(init=False)
     range_m: float = 30.0  # how far its sensor sees (what it did not see beyond is unknown)
     surface_map_m: FloatArray | None = None  # its points with their surfaces filled in
+    # Every point's surface direction (map frame) and kind, to weigh it in another frame.
+    point_directions_rad: FloatArray | None = None
+    point_reliable: npt.NDArray[np.bool_] | None = None
+    point_weak: npt.NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         self.derive()
@@ -124,6 +129,33 @@ class _Keyframe:
     def derive(self) -> None:
         self.sides = _sides(self.points_map_m, self.pose)
         self.direction_counts = direction_counts(self.directions_rad)
+
+    def in_frame(self, frame_rad: float) -> _Keyframe:
+        """This keyframe in the axes of a wall family at `frame_rad` (rotated by -frame_rad).
+
+        The orientation weights say which axis a point constrains, so they are recomputed
+        against that family's axes; a frame without per-point directions keeps its own.
+        """
+        if frame_rad == 0.0:
+            return self
+        c, s = math.cos(-frame_rad), math.sin(-frame_rad)
+        weights = self.weights
+        if self.point_directions_rad is not None and self.point_reliable is not None:
+            weights = orientation_weights(
+                self.point_directions_rad, self.point_reliable, -frame_rad, weak=self.point_weak
+            )
+        return _Keyframe(
+            Pose2D(
+                c * self.pose.x_m - s * self.pose.y_m,
+                s * self.pose.x_m + c * self.pose.y_m,
+                self.pose.theta_rad - frame_rad,
+            ),
+            rotate_points(self.points_map_m, -frame_rad),
+            weights,
+            self.directions_rad,
+            self.range_m,
+            None if self.surface_map_m is None else rotate_points(self.surface_map_m, -frame_rad),
+        )
 
 
 @dataclass(slots=True)
@@ -141,6 +173,7 @@ class _Reference:
     # what the 2-D field scores against (an edge far down a corridor is still an edge).
     full_points_map_m: FloatArray
     full_radius_m: float
+    frame_rad: float = 0.0  # the wall family whose axes it is in (rotated by -frame_rad)
     likelihood: LikelihoodField | None = None  # its 2-D field, built on first use
     # Built on first use, per axis: the 1-D densities, and sorted points for gating.
     densities: dict[int, AxisDensity] = field(default_factory=dict)
@@ -177,7 +210,7 @@ class ManhattanEstimator:
         self._keyframes: deque[_Keyframe] = deque(maxlen=max(1, self.params.local_map_keyframes))
         # The previous scan (reference "previous", `previous_scan_fallback`) and its densities.
         self._last_scan: _Keyframe | None = None
-        self._last_scan_densities: dict[int, AxisDensity] = {}
+        self._last_scan_densities: dict[tuple[int, float], AxisDensity] = {}
         # The previous scan's (angle_min, increment), ranges and range limits, for
         # `profile_turn`; masked only when a turn is measured (not at 40 Hz: speed).
         self._last_profile: tuple[tuple[float, float], FloatArray, float, float] | None = None
@@ -193,6 +226,7 @@ class ManhattanEstimator:
         self._sensor_range_m = self.params.max_range_used_m  # the current scan's, set by `_points`
         self._field_params = FieldMatchParams()
         self._increment_rad = math.radians(0.25)  # the current scan's beam step, set by `_points`
+        self._frames = WallFrames(self.params.frames)  # the building's wall families
 
     def __getstate__(self) -> dict[str, object]:
         # The reference is a cache (rebuilt from the keyframes on first use): its 2-D field
@@ -210,12 +244,13 @@ class ManhattanEstimator:
         self.__dict__.setdefault("_dir_spectrum", None)
         self.__dict__.setdefault("_beams", None)
         self.__dict__.setdefault("_heading_measured", False)
-        self.__dict__.setdefault("_last_scan_densities", {})
+        self.__dict__["_last_scan_densities"] = {}  # a cache (older keys: axis alone)
         self.__dict__.setdefault("_last_profile", None)
         self.__dict__.setdefault("_covariance", CovarianceTracker())
         self.__dict__.setdefault("_sensor_range_m", self.params.max_range_used_m)
         self.__dict__.setdefault("_field_params", FieldMatchParams())
         self.__dict__.setdefault("_increment_rad", math.radians(0.25))
+        self.__dict__.setdefault("_frames", WallFrames(self.params.frames))
         for frame in [*self.__dict__.get("_keyframes", ()), self.__dict__.get("_last_scan")]:
             if frame is not None and not hasattr(frame, "direction_counts"):
                 frame.derive()
@@ -225,6 +260,11 @@ class ManhattanEstimator:
                 frame.surface_map_m = None
 
     # ------------------------------------------------------------------ public
+    @property
+    def wall_families_rad(self) -> tuple[float, ...]:
+        """The wall families found so far, map-frame angles modulo 90° (the first is 0)."""
+        return tuple(self._frames.angles_rad)
+
     def process(self, scan: LaserScan) -> PoseEstimate:
         """Estimate the pose of `scan`. Never raises on bad data: returns a flagged pose."""
         try:
@@ -380,7 +420,7 @@ class ManhattanEstimator:
             return None
         meas = track_heading(
             pts,
-            pred.theta_rad,
+            pred.theta_rad - self._frames.angle_rad,
             math.radians(p.heading_step_deg),
             p.heading_bin_m,
             score=p.heading_score,
@@ -407,6 +447,12 @@ class ManhattanEstimator:
         prior_theta = pred.theta_rad
         dirs, dirs_ok, dirs_weak = self._directions(pts)
         work = _ScanWork(dirs, dirs_ok, dirs_weak)
+        if predicted and p.wall_frames:
+            # The wall family the scan's surfaces follow: its walls give the heading.
+            frame_before = self._frames.current
+            if self._frames.select(dirs[dirs_ok] + pred.theta_rad) != frame_before:
+                self._major_axis = None  # another family's walls: not a heading switch
+        phi = self._frames.angle_rad
         rotation_from_dirs: float | None = None
         meas = self._track_heading(pts, pred, scan) if predicted else None
         # Without odometry the constant-velocity heading is weak: the direction histograms
@@ -431,7 +477,7 @@ class ManhattanEstimator:
         if meas is None:
             meas = self._measure_heading(
                 pts,
-                prior_theta if predicted else None,
+                prior_theta - phi if predicted else None,
                 sigma,
                 coarse_half_rad=(
                     p.heading_coarse_window_sigmas * sigma
@@ -456,7 +502,7 @@ class ManhattanEstimator:
             # The ±45° rule: the member of the Manhattan family nearest the predicted heading
             # (the paper tracks it against the previous heading; the prediction is better).
             theta = resolve_heading(
-                meas.angle_rad, prior_theta if predicted else self._pose.theta_rad
+                meas.angle_rad + phi, prior_theta if predicted else self._pose.theta_rad
             )
             if self._major_axis is not None and meas.major_axis != self._major_axis:
                 flags |= PoseFlag.HEADING_SWITCH  # the major wall changed to a perpendicular one
@@ -480,7 +526,23 @@ class ManhattanEstimator:
                     flags |= PoseFlag.NON_MANHATTAN
                     heading_ok, heading_quality = False, 0.6
 
-        if predicted and not heading_ok and not odom_prior and p.wall_reanchor_fraction > 0.0:
+        new_family = False
+        # Dense scans only: on the two real logs (SICK, 180 beams) families were found that
+        # are not in the building (Intel, five starts: median 0.49 -> 1.44 m).
+        if predicted and p.wall_frames and pts.shape[0] >= p.translation_gate_min_points:
+            # The heading that measures a new family must stand on strong walls: a heading
+            # walked off along a curved wall measures its own error as a "family" (hall worlds).
+            strong = meas.peak_fraction >= p.frames.new_anchor_peak_fraction
+            new_family = self._observe_frames(
+                pts, dirs[dirs_ok], theta, anchored=heading_ok and strong
+            )
+        if (
+            predicted
+            and not heading_ok
+            and not new_family
+            and not odom_prior
+            and p.wall_reanchor_fraction > 0.0
+        ):
             anchored = self._reanchor_on_walls(pts, meas, theta)
             if anchored is not None:
                 theta = anchored
@@ -489,13 +551,24 @@ class ManhattanEstimator:
 
         # --- translation (paper §III) --------------------------------------------------
         theta = wrap_angle(theta)  # the pose's heading: `_commit` reuses `cur` when it matches
-        cur = rotate_points(pts, theta)
-        ref = self._reference()
+        # Correlated along the axes of the wall family the heading came from (`frames`): in
+        # a 30° wing the map axes would cut its walls at 30° and blur every histogram.
+        phi = self._frames.angle_rad if p.wall_frames else 0.0
+        to_frame = (math.cos(-phi), math.sin(-phi))
+
+        def in_frame(x_m: float, y_m: float) -> tuple[float, float]:
+            c, s = to_frame
+            return c * x_m - s * y_m, s * x_m + c * y_m
+
+        pred_xy = in_frame(pred.x_m, pred.y_m)
+        cur = rotate_points(pts, theta - phi)
+        ref = self._reference(phi)
         if ref is None:
             return self._commit(scan, Pose2D(pred.x_m, pred.y_m, theta), 0.2, flags, pts, work=work)
         if p.orientation_weighting:
-            cur_w = orientation_weights(dirs, dirs_ok, theta, weak=dirs_weak)
-            work.theta_rad, work.rotated_m, work.weights = theta, cur, cur_w
+            cur_w = orientation_weights(dirs, dirs_ok, theta - phi, weak=dirs_weak)
+            if phi == 0.0:
+                work.theta_rad, work.rotated_m, work.weights = theta, cur, cur_w
         else:
             cur_w = np.ones_like(cur)
         if p.use_prediction or odom_prior:
@@ -505,10 +578,10 @@ class ManhattanEstimator:
                 # The robot cannot move farther than this in one scan period (fast scanners).
                 reach_m = max(2.0 * p.max_speed_m_s * period_s, p.translation_window_min_m)
                 half_t = min(half_t, reach_m)
-            centre_xy = (pred.x_m, pred.y_m)
+            centre_xy = pred_xy
         else:
             half_t = p.translation_window_m
-            centre_xy = (self._pose.x_m, self._pose.y_m)
+            centre_xy = in_frame(self._pose.x_m, self._pose.y_m)
         # Only where the reference observed: a current point beyond its coverage reads zero
         # at every shift that moves it out, and the edge of coverage then pulls the match
         # back to the reference's own position (a plain corridor "mapped" at zero length).
@@ -541,7 +614,7 @@ class ManhattanEstimator:
         def peak(axis: int, curve: tuple[FloatArray, FloatArray], min_support: float) -> AxisMatch:
             return pick_peak(
                 *curve,
-                (pred.x_m, pred.y_m)[axis],
+                pred_xy[axis],
                 support[axis],
                 min_support=min_support,
                 ambiguity_ratio=p.ambiguity_ratio,
@@ -567,7 +640,7 @@ class ManhattanEstimator:
         # scan, a small motion, so a few points suffice (ACES: a robot stopped in a corridor
         # was predicted on at its last speed).
         if p.previous_scan_fallback and not odom_prior and self._last_scan is not None:
-            last = self._last_scan
+            last = self._last_scan.in_frame(phi)
             last_w: FloatArray | None = None  # the weights against it, once for both axes
             for axis in (0, 1):
                 if not matches[axis].ambiguous:
@@ -579,7 +652,7 @@ class ManhattanEstimator:
                         radius = last.range_m - half_t
                         last_w = _covered(cur, cur_w_all, centre_xy, last_xy, radius)
                 curve = correlate_axis(
-                    self._last_scan_density(axis),
+                    self._last_scan_density(last, axis, phi),
                     cur[:, axis],
                     last_w[:, axis],
                     centre_xy[axis],
@@ -620,7 +693,7 @@ class ManhattanEstimator:
         # A gated axis is already 2-D checked, and side-aware, which the occupied cells are
         # not (measured on the synthetic building: the cells then undo right gated answers).
         if p.refine_2d and (not gated or p.refine_2d_gated) and self._grid_ready():
-            x, y = self._refine(cur, x, y, mx, my)
+            x, y = self._refine(cur, x, y, mx, my, phi)
 
         q = heading_quality * (0.5 + 0.25 * mx.sharpness + 0.25 * my.sharpness)
         if mx.ambiguous:
@@ -632,7 +705,9 @@ class ManhattanEstimator:
             field_sigmas.get(0, axis_sigma_m(mx, cov)),
             field_sigmas.get(1, axis_sigma_m(my, cov)),
         )
-        return self._commit(scan, Pose2D(x, y, theta), q, flags, pts, work=work, sigmas_m=sigmas)
+        c, s = math.cos(phi), math.sin(phi)  # back to the map axes
+        pose = Pose2D(c * x - s * y, s * x + c * y, theta)
+        return self._commit(scan, pose, q, flags, pts, work=work, sigmas_m=sigmas, frame_rad=phi)
 
     def _gated_correlation(  # noqa: PLR0917 - the correlation's inputs plus the band
         self,
@@ -716,8 +791,9 @@ class ManhattanEstimator:
         def offset(c: float) -> float:
             return min(abs(wrap_angle(c - a)) for a in anchors)
 
-        for a in angles:
-            base = resolve_heading(a, prev)
+        families = self._frames.angles_rad if self.params.wall_frames else [0.0]
+        for a, f in ((a, f) for a in angles for f in families):
+            base = resolve_heading(a + f, prev)
             for k in (-1, 0, 1, 2):
                 c = base + k * QUARTER
                 if offset(c) <= reach:
@@ -778,6 +854,46 @@ class ManhattanEstimator:
         """The paper's heading search, without a prior, on the points `meas` measured."""
         return self._measure_heading(pts, None, 0.0, same_points=meas)
 
+    def _observe_frames(
+        self, pts: FloatArray, directions_rad: FloatArray, theta: float, *, anchored: bool
+    ) -> bool:
+        """Whether this scan shows a wall family that is being learnt (counted when trusted).
+
+        Trusted: the heading was measured in this scan on the current family, whose walls are
+        in view too. The angle between the two families is then measured within one scan,
+        free of drift. A heading measured on walls that are not the family's (a drifted one
+        that locked onto a curved wall: hall worlds) sees the old walls at its own error; that
+        "family" is the error, and is not counted. Also True for a family that earlier trusted
+        scans are learning: the caller must not re-anchor it onto an old one.
+        """
+        p = self.params
+        frames = self._frames
+        map_directions = directions_rad + theta
+        rough = frames.candidate(map_directions)
+        if rough is None:
+            return False
+        if not anchored or frames.current_support(map_directions) < frames.params.new_min_points:
+            return frames.is_pending(rough)
+        meas = track_heading(
+            pts,
+            theta - rough,
+            math.radians(p.heading_step_deg),
+            p.heading_bin_m,
+            score=p.heading_score,
+            fine_half_rad=math.radians(frames.params.tolerance_deg),
+            refine=p.subbin_refinement,
+            max_range_m=p.heading_max_range_m,
+        )
+        if meas is None or meas.peak_fraction < p.min_heading_peak_fraction:
+            return frames.is_pending(rough)
+        if frames.observe(theta - meas.angle_rad, self._pose.x_m, self._pose.y_m):
+            log.info(
+                "wall family at %.2f deg added (families: %s)",
+                math.degrees(frames.angles_rad[-1]),
+                ", ".join(f"{math.degrees(a):.2f}" for a in frames.angles_rad),
+            )
+        return True
+
     def _reanchor_on_walls(
         self, pts: FloatArray, meas: HeadingMeasurement, theta: float
     ) -> float | None:
@@ -793,16 +909,19 @@ class ManhattanEstimator:
         free = self._free_heading(pts, meas)
         if free.peak_fraction < p.wall_reanchor_fraction:
             return None
-        anchored = resolve_heading(free.angle_rad, theta)
+        if p.wall_frames:
+            anchored, _ = self._frames.nearest_member(free.angle_rad, theta)
+        else:
+            anchored = resolve_heading(free.angle_rad, theta)
         if abs(wrap_angle(anchored - theta)) > math.radians(p.wall_reanchor_max_deg):
             return None
         return anchored
 
     # ------------------------------------------------------------------ reference
-    def _reference(self) -> _Reference | None:
-        """The reference of the current scan, cached until a keyframe (or scan) replaces it."""
+    def _reference(self, frame_rad: float = 0.0) -> _Reference | None:
+        """The reference of the current scan in a family's axes, cached until it changes."""
         p = self.params
-        if self._ref is not None:
+        if self._ref is not None and self._ref.frame_rad == frame_rad:
             return self._ref
         if p.reference == "previous":
             frames = [self._last_scan] if self._last_scan is not None else []
@@ -812,6 +931,7 @@ class ManhattanEstimator:
             frames = list(self._keyframes)
         if not frames:
             return None
+        frames = [f.in_frame(frame_rad) for f in frames]
         pts = np.concatenate([f.points_map_m for f in frames])
         w = np.concatenate([f.weights for f in frames])
         sides = np.concatenate([f.sides for f in frames])
@@ -833,7 +953,7 @@ class ManhattanEstimator:
                 radius = min(radius, p.local_map_radius_m)
         if not p.orientation_weighting:
             w = np.ones_like(pts)
-        self._ref = _Reference(pts, w, sides, centre, radius, full_pts, full_radius)
+        self._ref = _Reference(pts, w, sides, centre, radius, full_pts, full_radius, frame_rad)
         return self._ref
 
     def _field(self, ref: _Reference) -> LikelihoodField:
@@ -862,20 +982,20 @@ class ManhattanEstimator:
             ref.densities[axis] = density
         return density
 
-    def _last_scan_density(self, axis: int) -> AxisDensity:
-        """The previous scan's density along `axis`, built on first use."""
-        assert self._last_scan is not None
-        density = self._last_scan_densities.get(axis)
+    def _last_scan_density(self, last: _Keyframe, axis: int, frame_rad: float) -> AxisDensity:
+        """The previous scan's density along `axis` (`last`: it in the axes of `frame_rad`)."""
+        key = (axis, frame_rad)
+        density = self._last_scan_densities.get(key)
         if density is None:
             p = self.params
             density = axis_density(
-                np.ascontiguousarray(self._last_scan.points_map_m[:, axis]),
-                np.ascontiguousarray(self._last_scan.weights[:, axis]),
+                np.ascontiguousarray(last.points_map_m[:, axis]),
+                np.ascontiguousarray(last.weights[:, axis]),
                 p.translation_step_m,
                 p.translation_bin_m,
                 max(p.translation_window_m, p.translation_window_pred_m),
             )
-            self._last_scan_densities[axis] = density
+            self._last_scan_densities[key] = density
         return density
 
     def _grid_ready(self) -> bool:
@@ -890,16 +1010,24 @@ class ManhattanEstimator:
             self._grid_dirty = False
         return self._grid
 
-    def _refine(
-        self, cur: FloatArray, x: float, y: float, mx: AxisMatch, my: AxisMatch
+    def _refine(  # noqa: PLR0917 - the 1-D answers and the axes they are in
+        self, cur: FloatArray, x: float, y: float, mx: AxisMatch, my: AxisMatch, frame_rad: float
     ) -> tuple[float, float]:
-        """Joint 2-D choice among the 1-D peak candidates (the paper's axes are independent)."""
+        """Joint 2-D choice among the 1-D peak candidates (the paper's axes are independent).
+
+        `cur`, the answers and the result are in the axes of the wall family at `frame_rad`.
+        """
         xs = [x] + [c for c in mx.peak_offsets_m if abs(c - x) > 0.02]
         ys = [y] + [c for c in my.peak_offsets_m if abs(c - y) > 0.02]
         if len(xs) == 1 and len(ys) == 1:
             return x, y
         cand = np.array([(cx, cy) for cx in xs for cy in ys])
-        scores = self._occupied().hit_fraction(cur, cand)
+        if frame_rad != 0.0:  # the occupied cells are in the map frame
+            scores = self._occupied().hit_fraction(
+                rotate_points(cur, frame_rad), rotate_points(cand, frame_rad)
+            )
+        else:
+            scores = self._occupied().hit_fraction(cur, cand)
         best = int(np.argmax(scores))
         # Switch only for a clearly better combination: the 1-D answer is sub-bin refined.
         if scores[best] > scores[0] + 0.05:
@@ -952,6 +1080,9 @@ class ManhattanEstimator:
             (dirs[ok] + pose.theta_rad) % math.pi,
             self._sensor_range_m,
             rotate_points(surface, pose.theta_rad) + origin,
+            dirs + pose.theta_rad,
+            ok,
+            weak,
         )
 
     def _commit(
@@ -964,8 +1095,10 @@ class ManhattanEstimator:
         *,
         work: _ScanWork | None = None,
         sigmas_m: tuple[float | None, float | None] = (None, None),
+        frame_rad: float = 0.0,
     ) -> PoseEstimate:
-        """Keep the pose and its motion; `sigmas_m` are the x/y match σ (None: not measured)."""
+        """Keep the pose and its motion; `sigmas_m` are the match σ (None: not measured) along
+        the axes of the wall family at `frame_rad`."""
         p = self.params
         if self._initialised and self._stamp_ns is not None:
             dt = self._dt_s(scan)
@@ -1047,6 +1180,7 @@ class ManhattanEstimator:
                 *sigmas_m,
                 heading_anchored=self._heading_measured,
                 degenerate=bool(flags & PoseFlag.DEGENERATE),
+                frame_rad=frame_rad,
             )
         if is_kf:
             self._covariance.restart()

@@ -8,8 +8,10 @@ each step's effect.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Literal
+
+from service.core.frontend.frames import FrameParams
 
 ReferenceMode = Literal["previous", "keyframe", "local_map"]
 HeadingScore = Literal["max", "energy"]
@@ -72,6 +74,8 @@ class EstimatorParams:
     weak_directions: bool = True  # dense scans: ... which only stops them voting along it
     coverage_cut: bool = True  # current points beyond the reference's coverage do not vote
     field_match: bool = True  # an axis left ambiguous is searched in 2-D (`field_match`)
+    wall_frames: bool = True  # several wall families ("Atlanta world", `frames`) ...
+    frames: FrameParams = field(default_factory=FrameParams)  # ... and how they are found
     wall_reanchor_fraction: float = 0.25  # on a relative heading, prior-free walls this strong ...
     wall_reanchor_max_deg: float = 30.0  # ... within this of it make the heading absolute again
     translation_gate_m: float = 0.15  # > 0: correlate only pairs this close on the other axis
