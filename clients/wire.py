@@ -60,7 +60,7 @@ class PoseFlag(enum.IntFlag):
     NO_DOMINANT_WALL = 1 << 1  # heading histogram has no clear peak
     AMBIGUOUS_X = 1 << 2  # translation along the x axis is unconstrained (e.g. corridor along x)
     AMBIGUOUS_Y = 1 << 3  # translation along the y axis is unconstrained
-    NON_MANHATTAN = 1 << 4  # major structure is not parallel/perpendicular to the first wall
+    NON_MANHATTAN = 1 << 4  # major structure follows no known wall family (first walls, wings)
     HEADING_SWITCH = 1 << 5  # the major wall changed to a perpendicular one (the ±45° rule)
     ODOMETRY_PRIOR = 1 << 6  # odometry was used to predict the motion
     RELOCALISED = 1 << 7  # estimate jumped after a period of low quality

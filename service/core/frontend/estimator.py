@@ -496,6 +496,13 @@ class ManhattanEstimator:
             # First scan: the map axes are its major walls; x is the one nearest the robot's
             # forward direction, so the first heading is the Manhattan angle itself.
             self._major_axis = meas.major_axis
+            # Weak walls (a curved wall, clutter): the first family the robot measures on
+            # strong walls replaces them (`frames`), instead of being folded onto them.
+            self._frames.provisional = (
+                p.wall_frames
+                and pts.shape[0] >= p.translation_gate_min_points
+                and meas.peak_fraction < p.frames.new_anchor_peak_fraction
+            )
             pose = Pose2D(0.0, 0.0, meas.angle_rad)
             return self._commit(scan, pose, 1.0 if heading_ok else 0.3, flags, pts, work=work)
         if heading_ok:
@@ -872,7 +879,14 @@ class ManhattanEstimator:
         rough = frames.candidate(map_directions)
         if rough is None:
             return False
-        if not anchored or frames.current_support(map_directions) < frames.params.new_min_points:
+        if anchored and frames.provisional and frames.current == 0:
+            frames.provisional = False  # the first family is measured on strong walls after all
+        trusted = anchored and (
+            frames.current_support(map_directions) >= frames.params.new_min_points
+        )
+        # While the first family is provisional, the heading is relative to the first scan,
+        # whose walls were weak: what strong walls it sees are the building's.
+        if not (trusted or frames.provisional):
             return frames.is_pending(rough)
         meas = track_heading(
             pts,
@@ -886,7 +900,15 @@ class ManhattanEstimator:
         )
         if meas is None or meas.peak_fraction < p.min_heading_peak_fraction:
             return frames.is_pending(rough)
+        provisional = frames.provisional
         if frames.observe(theta - meas.angle_rad, self._pose.x_m, self._pose.y_m):
+            if provisional:
+                log.info(
+                    "the first scan's walls were weak: the building's walls at %.2f deg are the "
+                    "first wall family instead",
+                    math.degrees(frames.angles_rad[0]),
+                )
+                return True
             log.info(
                 "wall family at %.2f deg added (families: %s)",
                 math.degrees(frames.angles_rad[-1]),

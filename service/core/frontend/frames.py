@@ -94,6 +94,9 @@ class WallFrames:
     params: FrameParams = field(default_factory=FrameParams)
     angles_rad: list[float] = field(default_factory=lambda: [0.0])
     current: int = 0
+    # The first family came from weak walls (the first scan saw a curved wall or clutter):
+    # the first family measured on strong walls replaces it.
+    provisional: bool = False
     # Recent trusted observations of a family not yet known: (x, y, angle) with the robot's
     # position in the map frame.
     _pending: deque[tuple[float, float, float]] = field(default_factory=lambda: deque(maxlen=64))
@@ -160,7 +163,10 @@ class WallFrames:
         )
         if span < p.new_span_m or not far:
             return False
-        self.angles_rad.append(angle)
+        if self.provisional:
+            self.angles_rad[0], self.current, self.provisional = angle, 0, False
+        else:
+            self.angles_rad.append(angle)
         self._pending.clear()
         return True
 

@@ -84,3 +84,14 @@ def test_nearest_member_picks_the_family_and_quadrant() -> None:
     heading, k = frames.nearest_member(math.radians(2.0), math.radians(-85.0))
     assert k == 0
     assert math.degrees(heading) == pytest.approx(-88.0)
+
+
+def test_a_provisional_first_family_is_replaced_by_the_first_strong_one() -> None:
+    """The first scan saw weak walls (a curved wall): the building's walls, once measured,
+    are the first family, not a second one next to a family that is not in the building."""
+    frames = WallFrames(provisional=True)
+    a = math.radians(17.0)
+    assert not any(frames.observe(a, 0.5 * k, 0.0) for k in range(3))
+    assert frames.observe(a, 1.6, 0.0)
+    assert frames.angles_rad == pytest.approx([a], abs=1e-3)
+    assert not frames.provisional
