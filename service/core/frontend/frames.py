@@ -127,6 +127,12 @@ class WallFrames:
         p = self.params
         if len(self.angles_rad) >= p.max_frames:
             return None
+        total = map_directions_rad.shape[0]
+        needed = max(p.new_min_points, p.new_min_share * total)
+        # A new family's surfaces are not the current family's (12° apart, 4° bands): when
+        # too few are left over, there is none (most scans; speed).
+        if total - self.current_support(map_directions_rad) < needed:
+            return None
         found = strongest_other_family(
             map_directions_rad,
             self.angles_rad,
@@ -136,8 +142,7 @@ class WallFrames:
         if found is None:
             return None
         angle, count = found
-        total = map_directions_rad.shape[0]
-        if count < max(p.new_min_points, p.new_min_share * total):
+        if count < needed:
             return None
         return angle
 
