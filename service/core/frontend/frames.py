@@ -33,16 +33,18 @@ _N_BINS = round(QUARTER / _BIN_RAD)
 class FrameParams:
     tolerance_deg: float = 4.0  # a surface within this of a family's axes follows it
     switch_ratio: float = 2.0  # another family needs this many times the current one's support
-    min_points: int = 20  # surfaces a family needs to be selected or observed
+    min_points: int = 20  # surfaces a family needs to be selected
     new_min_deg: float = 12.0  # a new family is at least this far from every known one
     new_min_share: float = 0.2  # ... and carries this share of the scan's surfaces ...
     new_min_points: int = 60  # ... and this many (~3 m of wall: its angle is measured on it)
     new_observations: int = 3  # ... in this many trusted scans ...
-    new_anchor_peak_fraction: float = 0.16  # trusted: heading on walls twice the minimum strength
     new_span_m: float = 1.5  # ... taken this far apart (a curved wall turns as one drives by) ...
     new_agree_deg: float = 0.25  # ... measured within this of their median ...
     new_agree_share: float = 0.67  # ... as most of its observations are (a curved wall's scatter)
     pending_m: float = 8.0  # observations farther back along the path are forgotten
+    # A scan is trusted to measure one when its heading stands on walls this strong (twice
+    # the estimator's minimum peak fraction): a heading walked off a curved wall is not.
+    new_anchor_peak_fraction: float = 0.16
     max_frames: int = 8  # a building has few wall families; beyond that, stop adding
 
 
