@@ -55,6 +55,12 @@ def column_bounds(points: npt.NDArray[Any]) -> tuple[float, float, float, float]
     return float(x.min()), float(y.min()), float(x.max()), float(y.max())
 
 
+def rotate_point(x_m: float, y_m: float, theta_rad: float) -> tuple[float, float]:
+    """One point rotated counter-clockwise by theta about the origin (`rotate_points`)."""
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    return c * x_m - s * y_m, s * x_m + c * y_m
+
+
 def rotate_points(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
     """(N, 2) points rotated counter-clockwise by theta about the origin."""
     c, s = math.cos(theta_rad), math.sin(theta_rad)

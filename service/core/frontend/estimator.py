@@ -20,7 +20,7 @@ import logging
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from itertools import islice
+from itertools import islice, product
 
 import numpy as np
 import numpy.typing as npt
@@ -66,6 +66,7 @@ from service.core.types import (
     LaserScan,
     Pose2D,
     PoseEstimate,
+    rotate_point,
     rotate_points,
     wrap_angle,
 )
@@ -138,7 +139,6 @@ class _Keyframe:
         """
         if frame_rad == 0.0:
             return self
-        c, s = math.cos(-frame_rad), math.sin(-frame_rad)
         weights = self.weights
         if self.point_directions_rad is not None and self.point_reliable is not None:
             weights = orientation_weights(
@@ -146,8 +146,7 @@ class _Keyframe:
             )
         return _Keyframe(
             Pose2D(
-                c * self.pose.x_m - s * self.pose.y_m,
-                s * self.pose.x_m + c * self.pose.y_m,
+                *rotate_point(self.pose.x_m, self.pose.y_m, -frame_rad),
                 self.pose.theta_rad - frame_rad,
             ),
             rotate_points(self.points_map_m, -frame_rad),
@@ -561,13 +560,7 @@ class ManhattanEstimator:
         # Correlated along the axes of the wall family the heading came from (`frames`): in
         # a 30° wing the map axes would cut its walls at 30° and blur every histogram.
         phi = self._frames.angle_rad if p.wall_frames else 0.0
-        to_frame = (math.cos(-phi), math.sin(-phi))
-
-        def in_frame(x_m: float, y_m: float) -> tuple[float, float]:
-            c, s = to_frame
-            return c * x_m - s * y_m, s * x_m + c * y_m
-
-        pred_xy = in_frame(pred.x_m, pred.y_m)
+        pred_xy = rotate_point(pred.x_m, pred.y_m, -phi)
         cur = rotate_points(pts, theta - phi)
         ref = self._reference(phi)
         if ref is None:
@@ -588,7 +581,7 @@ class ManhattanEstimator:
             centre_xy = pred_xy
         else:
             half_t = p.translation_window_m
-            centre_xy = in_frame(self._pose.x_m, self._pose.y_m)
+            centre_xy = rotate_point(self._pose.x_m, self._pose.y_m, -phi)
         # Only where the reference observed: a current point beyond its coverage reads zero
         # at every shift that moves it out, and the edge of coverage then pulls the match
         # back to the reference's own position (a plain corridor "mapped" at zero length).
@@ -712,8 +705,7 @@ class ManhattanEstimator:
             field_sigmas.get(0, axis_sigma_m(mx, cov)),
             field_sigmas.get(1, axis_sigma_m(my, cov)),
         )
-        c, s = math.cos(phi), math.sin(phi)  # back to the map axes
-        pose = Pose2D(c * x - s * y, s * x + c * y, theta)
+        pose = Pose2D(*rotate_point(x, y, phi), theta)  # back to the map axes
         return self._commit(scan, pose, q, flags, pts, work=work, sigmas_m=sigmas, frame_rad=phi)
 
     def _gated_correlation(  # noqa: PLR0917 - the correlation's inputs plus the band
@@ -798,8 +790,8 @@ class ManhattanEstimator:
         def offset(c: float) -> float:
             return min(abs(wrap_angle(c - a)) for a in anchors)
 
-        families = self._frames.angles_rad if self.params.wall_frames else [0.0]
-        for a, f in ((a, f) for a in angles for f in families):
+        # Every family's member (only the first without `wall_frames`: none is learnt).
+        for a, f in product(angles, self._frames.angles_rad):
             base = resolve_heading(a + f, prev)
             for k in (-1, 0, 1, 2):
                 c = base + k * QUARTER
@@ -931,10 +923,7 @@ class ManhattanEstimator:
         free = self._free_heading(pts, meas)
         if free.peak_fraction < p.wall_reanchor_fraction:
             return None
-        if p.wall_frames:
-            anchored, _ = self._frames.nearest_member(free.angle_rad, theta)
-        else:
-            anchored = resolve_heading(free.angle_rad, theta)
+        anchored, _ = self._frames.nearest_member(free.angle_rad, theta)
         if abs(wrap_angle(anchored - theta)) > math.radians(p.wall_reanchor_max_deg):
             return None
         return anchored

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from service.core.frontend.heading import QUARTER, wrap_quarter
+from service.core.frontend.heading import QUARTER, resolve_heading, wrap_quarter
 from service.core.types import FloatArray
 
 _BIN_RAD = math.radians(0.5)
@@ -206,8 +206,7 @@ class WallFrames:
         """The heading ≡ `manhattan_rad` + a family's angle (mod 90°) nearest `heading_rad`."""
         best, best_k, best_d = heading_rad, self.current, math.inf
         for k, f in enumerate(self.angles_rad):
-            base = manhattan_rad + f
-            c = base + round((heading_rad - base) / QUARTER) * QUARTER
+            c = resolve_heading(manhattan_rad + f, heading_rad)
             d = abs(c - heading_rad)
             if d < best_d:
                 best, best_k, best_d = c, k, d
