@@ -27,6 +27,7 @@ import numpy.typing as npt
 
 from clients.wire import PoseFlag
 from service.core.frontend.covariance import CovarianceTracker, axis_sigma_m
+from service.core.frontend.dynamic import FreeSpace, SeenThroughParams, seen_through
 from service.core.frontend.field_match import (
     FieldMatchParams,
     axis_response,
@@ -226,6 +227,9 @@ class ManhattanEstimator:
         self._field_params = FieldMatchParams()
         self._increment_rad = math.radians(0.25)  # the current scan's beam step, set by `_points`
         self._frames = WallFrames(self.params.frames)  # the building's wall families
+        # The newest keyframes' free space (`dynamic`).
+        self._last_free: FreeSpace | None = None  # what the previous scan saw free
+        self._seen_keyframes: deque[FreeSpace] = deque(maxlen=self.params.seen_through.keyframes)
 
     def __getstate__(self) -> dict[str, object]:
         # The reference is a cache (rebuilt from the keyframes on first use): its 2-D field
@@ -250,6 +254,8 @@ class ManhattanEstimator:
         self.__dict__.setdefault("_field_params", FieldMatchParams())
         self.__dict__.setdefault("_increment_rad", math.radians(0.25))
         self.__dict__.setdefault("_frames", WallFrames(self.params.frames))
+        self.__dict__.setdefault("_seen_keyframes", deque(maxlen=SeenThroughParams().keyframes))
+        self.__dict__.setdefault("_last_free", None)
         for frame in [*self.__dict__.get("_keyframes", ()), self.__dict__.get("_last_scan")]:
             if frame is not None and not hasattr(frame, "direction_counts"):
                 frame.derive()
@@ -557,6 +563,18 @@ class ManhattanEstimator:
 
         # --- translation (paper §III) --------------------------------------------------
         theta = wrap_angle(theta)  # the pose's heading: `_commit` reuses `cur` when it matches
+        # Dense scans only: on the two real logs (SICK, 180 beams, a pose per 0.1-0.5 s) it
+        # measured worse (five starts: ACES median 0.14 -> 0.16 m, Intel 0.49 -> 1.85 m).
+        if p.dynamic_rejection and pts.shape[0] >= p.translation_gate_min_points:
+            keep = self._static(scan, pts, Pose2D(pred.x_m, pred.y_m, theta))
+            if keep is not None:
+                pts, dirs, dirs_ok, dirs_weak = (
+                    pts[keep],
+                    dirs[keep],
+                    dirs_ok[keep],
+                    dirs_weak[keep],
+                )
+                work = _ScanWork(dirs, dirs_ok, dirs_weak)
         # Correlated along the axes of the wall family the heading came from (`frames`): in
         # a 30° wing the map axes would cut its walls at 30° and blur every histogram.
         phi = self._frames.angle_rad if p.wall_frames else 0.0
@@ -707,6 +725,24 @@ class ManhattanEstimator:
         )
         pose = Pose2D(*rotate_point(x, y, phi), theta)  # back to the map axes
         return self._commit(scan, pose, q, flags, pts, work=work, sigmas_m=sigmas, frame_rad=phi)
+
+    def _static(
+        self, scan: LaserScan, pts: FloatArray, pose: Pose2D
+    ) -> npt.NDArray[np.bool_] | None:
+        """The points not in space that the previous scan or the oldest of the recent
+        keyframes saw through (None: keep them all). A keyframe too: a person beside the robot
+        for several scans is in the previous one, but not where the robot was a metre ago."""
+        p = self.params
+        seen = [self._seen_keyframes[0]] if self._seen_keyframes else []
+        if self._last_free is not None:
+            seen.append(self._last_free)
+        moved = np.zeros(pts.shape[0], dtype=bool)
+        for free in seen:
+            if free.matches(scan.angle_min_rad, scan.angle_increment_rad, len(scan.ranges_m)):
+                moved |= seen_through(pts, pose, free, p.seen_through)
+        if not moved.any() or pts.shape[0] - int(moved.sum()) < p.min_points:
+            return None
+        return ~moved
 
     def _gated_correlation(  # noqa: PLR0917 - the correlation's inputs plus the band
         self,
@@ -1153,6 +1189,17 @@ class ManhattanEstimator:
             key = (scan.angle_min_rad, scan.angle_increment_rad)
             ranges = np.array(scan.ranges_m, dtype=np.float64)  # a copy: the caller's may change
             self._last_profile = (key, ranges, scan.range_min_m, scan.range_max_m)
+        self._last_free = None
+        if p.dynamic_rejection:
+            self._last_free = FreeSpace.of(
+                pose,
+                np.asarray(scan.ranges_m, dtype=np.float64),
+                scan.range_min_m,
+                scan.range_max_m,
+                scan.angle_min_rad,
+                scan.angle_increment_rad,
+                p.seen_through,
+            )
         is_kf = False
         if pts is not None and not flags & PoseFlag.DEGENERATE:
             if not self._keyframes:
@@ -1178,6 +1225,8 @@ class ManhattanEstimator:
                 self._ref = None
             if is_kf and frame is not None:
                 self._keyframes.append(frame)
+                if self._last_free is not None:
+                    self._seen_keyframes.append(self._last_free)
                 self._grid_dirty = True
                 self._dir_spectrum = None
                 if p.reference != "previous":

@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, fields
 from typing import Literal
 
+from service.core.frontend.dynamic import SeenThroughParams
 from service.core.frontend.frames import FrameParams
 
 ReferenceMode = Literal["previous", "keyframe", "local_map"]
@@ -74,6 +75,8 @@ class EstimatorParams:
     weak_directions: bool = True  # dense scans: ... which only stops them voting along it
     coverage_cut: bool = True  # current points beyond the reference's coverage do not vote
     field_match: bool = True  # an axis left ambiguous is searched in 2-D (`field_match`)
+    dynamic_rejection: bool = True  # points where the previous scan saw free space: moving
+    seen_through: SeenThroughParams = field(default_factory=SeenThroughParams)  # (`dynamic`)
     wall_frames: bool = True  # several wall families ("Atlanta world", `frames`) ...
     frames: FrameParams = field(default_factory=FrameParams)  # ... and how they are found
     wall_reanchor_fraction: float = 0.25  # on a relative heading, prior-free walls this strong ...
