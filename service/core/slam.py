@@ -172,7 +172,7 @@ class SlamBackend:
                 np.block([[cov_map, np.zeros((2, 1))], [np.zeros((1, 2)), np.ones((1, 1))]]),
                 est_a.theta_rad,
             )[:2, :2]
-            result = verify(sub, query, points, guess, cov_a, p)
+            result = verify(sub, self.submaps.field_of(sub), query, points, guess, cov_a, p)
             if not result.accepted:
                 self.stats.rejected[result.reason] = self.stats.rejected.get(result.reason, 0) + 1
                 self.stats.recent_rejected.append(result)

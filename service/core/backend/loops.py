@@ -209,6 +209,7 @@ def window_m(chain_cov_xy: FloatArray, params: LoopParams) -> float:
 
 def verify(  # noqa: PLR0917 - the query, the candidate and the graph's view of them
     submap: Submap,
+    field: LikelihoodField,
     query_node: int,
     points_m: FloatArray,
     guess: Pose2D,
@@ -220,13 +221,10 @@ def verify(  # noqa: PLR0917 - the query, the candidate and the graph's view of 
     `guess` is the query node in the anchor's frame (from the graph), `chain_cov_xy` the 2×2
     uncertainty of that guess, in the anchor's frame too.
     """
-    assert submap.likelihood is not None
     refused = LoopResult(submap.index, submap.anchor_node, query_node, False, "few_points")
     if points_m.shape[0] < params.min_points:
         return refused
-    placement = place_scan(
-        submap.likelihood, points_m, guess, window_m(chain_cov_xy, params), params
-    )
+    placement = place_scan(field, points_m, guess, window_m(chain_cov_xy, params), params)
     d = np.array([placement.pose.x_m - guess.x_m, placement.pose.y_m - guess.y_m])
     result = replace(
         refused,

@@ -41,6 +41,7 @@ class SubmapParams:
     coarse_factor: int = 4  # coarse field block (cells): 0.2 m at 0.05 m
     max_points_per_node: int = 400  # a node's scan points kept (voxel-thinned first)
     voxel_m: float = 0.05  # thinning of the points kept per node
+    cached_fields: int = 24  # likelihood fields kept for the loop search (built on demand)
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,17 +120,37 @@ def _sliding_max(grid: F32Array, k: int) -> F32Array:
     return out
 
 
+@dataclass(frozen=True, slots=True)
+class ObservedMask:
+    """The cells a submap's rays observed: (H, W) booleans, row = y, from cell (i0, j0)."""
+
+    seen: npt.NDArray[np.bool_]
+    i0: int
+    j0: int
+    resolution_m: float
+
+    @classmethod
+    def of(cls, grid: OccupancyGrid) -> ObservedMask:
+        log_odds, i0, j0 = grid.log_odds()
+        return cls(np.ascontiguousarray(log_odds != 0.0), int(i0), int(j0), grid.resolution_m)
+
+    @property
+    def nbytes(self) -> int:
+        return int(self.seen.nbytes)
+
+
 def likelihood_field(
     points_m: FloatArray,
     params: SubmapParams,
-    observed: OccupancyGrid | None = None,
+    observed: ObservedMask | None = None,
     *,
     bound: bool = True,
 ) -> LikelihoodField:
     """The field of an (N, 2) point set, N > 0, with a margin of 3σ around it.
 
-    `observed` (same resolution) gives the known mask; without it every cell is known.
-    `bound` False leaves out the coarse upper bound (empty), for callers that never search it.
+    `observed` (a multiple of the field's resolution) gives the known mask; without it every
+    cell is known. `bound` False leaves out the coarse upper bound (empty), for callers that
+    never search it.
     """
     res = params.resolution_m
     radius = max(1, math.ceil(3.0 * params.hit_sigma_m / res))
@@ -139,8 +160,8 @@ def likelihood_field(
     if observed is not None:
         # The observed grid is coarser by an integer factor: its cells, repeated, on ours.
         k = max(1, round(observed.resolution_m / res))
-        coarse_seen, ci0, cj0 = observed.log_odds()
-        dense = np.repeat(np.repeat(coarse_seen != 0.0, k, axis=0), k, axis=1)
+        ci0, cj0 = observed.i0, observed.j0
+        dense = np.repeat(np.repeat(observed.seen, k, axis=0), k, axis=1)
         ci0, cj0 = ci0 * k, cj0 * k
         if dense.size:
             lo = np.minimum(lo, (cj0 - radius, ci0 - radius))
@@ -179,20 +200,45 @@ def likelihood_field(
 
 @dataclass(slots=True)
 class Submap:
-    """Consecutive nodes' scan points in the anchor node's frame."""
+    """Consecutive nodes' scan points in the anchor node's frame.
+
+    A finished submap keeps its thinned points and the mask of what its rays observed; its
+    likelihood field (megabytes: a 30 m reach at 0.05 m) is built when the loop search needs
+    it and kept only in the builder's small cache, never in a checkpoint.
+    """
 
     index: int
     anchor_node: int
     anchor_pose_frontend: Pose2D  # the anchor's front-end pose (places the points)
     nodes: list[int] = field(default_factory=list)
     chunks: list[FloatArray] = field(default_factory=list)
-    likelihood: LikelihoodField | None = None  # set when finished
     observed: OccupancyGrid | None = None  # ray-cast while active, for the known mask
     node_xy_m: list[tuple[float, float]] = field(default_factory=list)  # anchor frame
+    observed_mask: ObservedMask | None = None  # set when finished
+    finished: bool = False
+    likelihood: LikelihoodField | None = None  # a cache (`SubmapBuilder.field_of`)
 
-    @property
-    def finished(self) -> bool:
-        return self.likelihood is not None
+    def __getstate__(self) -> dict[str, object]:
+        state = {name: getattr(self, name) for name in self.__slots__}
+        state["likelihood"] = None
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        old_field = state.get("likelihood")
+        for name in self.__slots__:
+            object.__setattr__(self, name, state.get(name))
+        self.nodes = self.nodes or []
+        self.chunks = self.chunks or []
+        self.node_xy_m = self.node_xy_m or []
+        self.likelihood = None
+        if old_field is not None and "finished" not in state:
+            # Saved by a version that kept the field: its known mask, at the field's cells.
+            ri = round(old_field.origin_m[1] / old_field.resolution_m)
+            rj = round(old_field.origin_m[0] / old_field.resolution_m)
+            seen = np.asarray(old_field.known) > 0.5
+            self.observed_mask = ObservedMask(seen, ri, rj, old_field.resolution_m)
+            self.finished = True
+        self.finished = bool(self.finished)
 
     def insert(
         self,
@@ -217,10 +263,24 @@ class Submap:
         pts = np.concatenate(self.chunks) if self.chunks else np.zeros((0, 2))
         if pts.shape[0] == 0:
             pts = np.zeros((1, 2))
-        pts = voxel_thin(pts, params.resolution_m)
-        self.likelihood = likelihood_field(pts, params, self.observed)
+        self.chunks = [voxel_thin(pts, params.resolution_m)]  # what the field is built from
+        self.observed_mask = ObservedMask.of(self.observed) if self.observed is not None else None
         self.observed = None  # the mask is all the loop search needs of it
-        self.chunks = [pts]  # thinned: what the map composition and checks need
+        self.finished = True
+
+    def build_field(self, params: SubmapParams) -> LikelihoodField:
+        assert self.finished
+        return likelihood_field(self.chunks[0], params, self.observed_mask)
+
+    @property
+    def nbytes(self) -> int:
+        """What it holds for good (not the field's cache)."""
+        held = sum(int(c.nbytes) for c in self.chunks)
+        if self.observed_mask is not None:
+            held += self.observed_mask.nbytes
+        if self.observed is not None:
+            held += self.observed.memory_bytes()
+        return held
 
 
 class SubmapBuilder:
@@ -231,6 +291,35 @@ class SubmapBuilder:
         self.submaps: list[Submap] = []
         self._active: list[Submap] = []
         self._half = max(1, self.params.nodes_per_submap // 2)
+        self._cached: list[Submap] = []  # submaps holding a field, least recently used first
+
+    def __getstate__(self) -> dict[str, object]:
+        state = dict(self.__dict__)
+        state["_cached"] = []
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self.__dict__.setdefault("_cached", [])
+
+    def field_of(self, submap: Submap) -> LikelihoodField:
+        """A finished submap's likelihood field, from the cache of the `cached_fields` most
+        recently searched (a loop search looks at the same few submaps query after query)."""
+        if submap.likelihood is not None:
+            self._cached.remove(submap)
+        else:
+            submap.likelihood = submap.build_field(self.params)
+            while len(self._cached) >= max(1, self.params.cached_fields):
+                self._cached.pop(0).likelihood = None
+        self._cached.append(submap)
+        return submap.likelihood
+
+    @property
+    def nbytes(self) -> int:
+        """What the submaps hold, and the fields cached beside it."""
+        held = sum(sub.nbytes for sub in self.submaps)
+        cached = sum(_field_bytes(sub.likelihood) for sub in self._cached if sub.likelihood)
+        return held + cached
 
     def node_points(self, points_laser_m: FloatArray) -> FloatArray:
         """What a node keeps of its scan: voxel-thinned, at most `max_points_per_node`."""
@@ -261,3 +350,7 @@ class SubmapBuilder:
                 self._active.remove(sub)
                 finished.append(sub)
         return finished
+
+
+def _field_bytes(f: LikelihoodField) -> int:
+    return int(f.fine.nbytes + f.coarse.nbytes + f.known.nbytes)

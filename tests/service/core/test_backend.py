@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import pytest
 from sensor_agent.sim.world import LaserModel, World, simulate_scan
 from service.core.backend.graph import GraphParams, PoseGraph
 from service.core.backend.loops import LoopParams, verify
-from service.core.maps.submaps import SubmapBuilder, SubmapParams
+from service.core.maps.submaps import Submap, SubmapBuilder, SubmapParams
 from service.core.types import LaserScan, Pose2D
 
 pytestmark = pytest.mark.timeout(120)
@@ -77,13 +78,43 @@ def test_loop_search_finds_a_known_offset() -> None:
     true_rel = anchor.between(truth)
     points = builder.node_points(_scan(world, truth, rng).points_xy_m())
     guess = Pose2D(true_rel.x_m + 0.35, true_rel.y_m - 0.25, true_rel.theta_rad + math.radians(0.3))
-    result = verify(sub, 99, points, guess, np.eye(2) * 0.3**2, LoopParams())
+    result = verify(sub, builder.field_of(sub), 99, points, guess, np.eye(2) * 0.3**2, LoopParams())
     assert result.accepted, result
     assert result.relative is not None
     assert math.hypot(result.relative.x_m - true_rel.x_m, result.relative.y_m - true_rel.y_m) < 0.02
     assert abs(result.relative.theta_rad - true_rel.theta_rad) < math.radians(0.35)
     assert result.cov_xy is not None
     assert np.sqrt(np.linalg.eigvalsh(result.cov_xy)).max() < 0.1
+
+
+def test_finished_submaps_hold_points_and_mask_and_build_their_field_on_demand() -> None:
+    """A finished submap keeps its points and observed mask, not its likelihood field: the
+    field is built for the loop search, cached for the few most recent, left out of
+    checkpoints, and the same whether cached or rebuilt."""
+    rng = np.random.default_rng(3)
+    world = _world(_room(0.0), 8.0, 6.0)
+    poses = _anchor_poses()
+    builder = SubmapBuilder(SubmapParams(nodes_per_submap=4, cached_fields=2))
+    for node, pose in enumerate(poses):
+        scan = _scan(world, pose, rng)
+        builder.add_node(node, pose, builder.node_points(scan.points_xy_m()), scan)
+    finished = [sub for sub in builder.submaps if sub.finished]
+    assert len(finished) >= 3
+    assert all(sub.likelihood is None and sub.observed_mask is not None for sub in finished)
+    first = builder.field_of(finished[0])
+    assert builder.field_of(finished[0]) is first  # cached
+    builder.field_of(finished[1])
+    builder.field_of(finished[2])  # the cache holds 2: the least recently used goes
+    assert finished[0].likelihood is None
+    assert finished[2].likelihood is not None
+    rebuilt = builder.field_of(finished[0])
+    assert np.array_equal(rebuilt.fine, first.fine)
+    assert np.array_equal(rebuilt.known, first.known)
+    restored = pickle.loads(pickle.dumps(builder))
+    assert all(sub.likelihood is None for sub in restored.submaps)
+    again = restored.field_of(restored.submaps[finished[0].index])
+    assert np.array_equal(again.fine, first.fine)
+    assert len(pickle.dumps(finished[0])) < 0.25 * first.fine.nbytes
 
 
 def test_a_twin_room_would_match_without_the_checks_and_is_refused_with_them() -> None:
@@ -102,14 +133,14 @@ def test_a_twin_room_would_match_without_the_checks_and_is_refused_with_them() -
     unchecked = LoopParams(
         window_min_m=14.0, window_max_m=14.0, ambiguity_separation_m=100.0, chi2_gate=math.inf
     )
-    wrong = verify(sub, 99, points, guess, chain_cov, unchecked)
+    wrong = verify(sub, builder.field_of(sub), 99, points, guess, chain_cov, unchecked)
     assert wrong.accepted
     assert wrong.relative is not None
     # The twin: 12 m from the truth, the same place in the other room.
     assert abs(wrong.relative.x_m - (true_rel.x_m - 12.0 * math.cos(anchor.theta_rad))) < 0.3
     assert math.hypot(wrong.relative.x_m - true_rel.x_m, wrong.relative.y_m - true_rel.y_m) > 11.0
 
-    checked = verify(sub, 99, points, guess, chain_cov, LoopParams())
+    checked = verify(sub, builder.field_of(sub), 99, points, guess, chain_cov, LoopParams())
     assert not checked.accepted
     assert checked.reason in {"low_score", "inconsistent", "ambiguous"}
 
@@ -140,9 +171,8 @@ def test_a_periodic_corridor_is_ambiguous() -> None:
         model.range_min_m, model.range_max_m,
     )  # fmt: skip
     rel = poses[0].between(truth)
-    result = verify(
-        sub, 99, builder.node_points(query.points_xy_m()), rel, np.eye(2) * 1.5**2, LoopParams()
-    )
+    points = builder.node_points(query.points_xy_m())
+    result = verify(sub, builder.field_of(sub), 99, points, rel, np.eye(2) * 1.5**2, LoopParams())
     assert not result.accepted
     assert result.reason == "ambiguous"
 
@@ -240,3 +270,26 @@ def test_offline_loop_closure_closes_a_synthetic_loop() -> None:
     true_length = trajectory_length_m(truth)
     assert abs(trajectory_length_m(closed.poses) - true_length) < 0.01 * true_length
     assert closed.frontend_poses == frontend.poses  # the front end is the same either way
+
+
+def test_a_submap_saved_with_its_field_by_an_older_version_still_loads() -> None:
+    rng = np.random.default_rng(4)
+    world = _world(_room(0.0), 8.0, 6.0)
+    builder = _submap(world, _anchor_poses(), rng)
+    sub = builder.submaps[0]
+    field = builder.field_of(sub)
+    old_state = {name: getattr(sub, name) for name in ("index", "anchor_node", "nodes", "chunks")}
+    old_state |= {
+        "anchor_pose_frontend": sub.anchor_pose_frontend,
+        "node_xy_m": sub.node_xy_m,
+        "observed": None,
+        "likelihood": field,  # what the older version kept, and no mask
+    }
+    loaded = Submap.__new__(Submap)
+    loaded.__setstate__(old_state)
+    assert loaded.finished
+    assert loaded.likelihood is None
+    rebuilt = SubmapBuilder(builder.params).field_of(loaded)
+    xy = np.stack(np.meshgrid(np.arange(-2.0, 10.0, 0.05), np.arange(-2.0, 8.0, 0.05)), axis=-1)
+    assert np.array_equal(rebuilt.lookup(xy), field.lookup(xy))  # the same field, cell for cell
+    assert np.array_equal(rebuilt.lookup(xy, known=True), field.lookup(xy, known=True))
