@@ -175,13 +175,14 @@ def likelihood_field(
     di, dj = np.meshgrid(d, d, indexing="ij")
     bump = np.exp(-0.5 * ((di**2 + dj**2) * res**2) / params.hit_sigma_m**2).astype(np.float32)
     fine = np.zeros((h, w), dtype=np.float32)
-    cells = np.unique(i * w + j)
-    ci, cj = cells // w, cells % w
-    np.maximum.at(
-        fine,
-        ((ci[:, None] + di.ravel()[None, :]).ravel(), (cj[:, None] + dj.ravel()[None, :]).ravel()),
-        np.broadcast_to(bump.ravel(), (cells.shape[0], bump.size)).ravel(),
-    )
+    cells = i * w + j
+    # One bump offset at a time: within an offset every hit in a cell writes the same value
+    # (the cell's old value or the bump's), so a plain gather-max-scatter is exact even where
+    # hits share a cell (`np.maximum.at` is ~3x slower).
+    flat = fine.reshape(-1)
+    for offset, value in zip((di * w + dj).ravel().tolist(), bump.ravel().tolist(), strict=True):
+        idx = cells + offset
+        flat[idx] = np.maximum(flat[idx], np.float32(value))
     coarse = _sliding_max(fine, params.coarse_factor) if bound else np.zeros((0, 0), np.float32)
     if dense is not None and dense.size:
         seen = np.zeros((h, w), dtype=np.float32)
