@@ -160,6 +160,8 @@ class SlamBackend:
             q_in_a = self.graph.estimate(sub.anchor_node).between(est_q)
             xy = np.asarray(sub.node_xy_m)
             dist = float(np.min(np.hypot(xy[:, 0] - q_in_a.x_m, xy[:, 1] - q_in_a.y_m)))
+            if dist > p.base_radius_m + p.window_max_m:
+                continue  # beyond any window (`window_m` is at most `window_max_m`): exact
             cov = self._chain_cov(sub.anchor_node, query)
             if dist <= p.base_radius_m + window_m(cov, p):
                 candidates.append((dist, sub.index, cov))
