@@ -1102,8 +1102,11 @@ class ManhattanEstimator:
         return dirs, close, line
 
     # ------------------------------------------------------------------ bookkeeping
-    def _frame(self, pts: FloatArray, pose: Pose2D, work: _ScanWork | None) -> _Keyframe:
-        """The scan as a keyframe at `pose`, reusing what `_process` computed for it."""
+    def _frame(
+        self, pts: FloatArray, pose: Pose2D, work: _ScanWork | None, *, surfaces: bool = True
+    ) -> _Keyframe:
+        """The scan as a keyframe at `pose`, reusing what `_process` computed for it; without
+        `surfaces`, no filled surfaces (only the 2-D field reads them, from the local map)."""
         if work is not None:
             dirs, ok, weak = work.dirs_rad, work.dirs_ok, work.dirs_weak
         else:
@@ -1119,14 +1122,17 @@ class ManhattanEstimator:
             cur = rotate_points(pts, pose.theta_rad)
             cur_w = orientation_weights(dirs, ok, pose.theta_rad, weak=weak)
         origin = np.array([pose.x_m, pose.y_m])
-        surface = surface_points(pts, dirs, ok | weak, self._increment_rad, self._field_params)
+        surface = None
+        if surfaces:
+            filled = surface_points(pts, dirs, ok | weak, self._increment_rad, self._field_params)
+            surface = rotate_points(filled, pose.theta_rad) + origin
         return _Keyframe(
             pose,
             cur + origin,
             cur_w,
             (dirs[ok] + pose.theta_rad) % math.pi,
             self._sensor_range_m,
-            rotate_points(surface, pose.theta_rad) + origin,
+            surface,
             dirs + pose.theta_rad,
             ok,
             weak,
@@ -1217,7 +1223,8 @@ class ManhattanEstimator:
                 if flags & ambiguous and dist < p.keyframe_ambiguous_distance_m:
                     is_kf = False
             keep_last = p.reference == "previous" or p.previous_scan_fallback
-            frame = self._frame(pts, pose, work) if is_kf or keep_last else None
+            surfaces = is_kf or p.reference == "previous"  # what the 2-D field reads
+            frame = self._frame(pts, pose, work, surfaces=surfaces) if is_kf or keep_last else None
             if keep_last:
                 self._last_scan = frame
                 self._last_scan_densities = {}
