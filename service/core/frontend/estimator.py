@@ -227,8 +227,8 @@ class ManhattanEstimator:
         self._field_params = FieldMatchParams()
         self._increment_rad = math.radians(0.25)  # the current scan's beam step, set by `_points`
         self._frames = WallFrames(self.params.frames)  # the building's wall families
-        # The newest keyframes' free space (`dynamic`).
-        self._last_free: FreeSpace | None = None  # what the previous scan saw free
+        # What the previous scan and the newest keyframes saw free (`dynamic`, dense scans).
+        self._last_free: FreeSpace | None = None
         self._seen_keyframes: deque[FreeSpace] = deque(maxlen=self.params.seen_through.keyframes)
 
     def __getstate__(self) -> dict[str, object]:
@@ -1196,7 +1196,11 @@ class ManhattanEstimator:
             ranges = np.array(scan.ranges_m, dtype=np.float64)  # a copy: the caller's may change
             self._last_profile = (key, ranges, scan.range_min_m, scan.range_max_m)
         self._last_free = None
-        if p.dynamic_rejection:
+        if (
+            p.dynamic_rejection
+            and pts is not None
+            and pts.shape[0] >= p.translation_gate_min_points
+        ):
             self._last_free = FreeSpace.of(
                 pose,
                 np.asarray(scan.ranges_m, dtype=np.float64),
