@@ -17,14 +17,13 @@ few metres.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
-from service.core.types import FloatArray, Pose2D
+from service.core.types import FloatArray, Pose2D, rotate_points
 
 
 @dataclass(frozen=True, slots=True)
@@ -137,15 +136,9 @@ def seen_through(
     if n_pts == 0 or n_beams < 3 or free.increment_rad <= 0.0:
         return out
     # Into that scan's laser frame.
-    seen_pose = free.pose
-    d_theta = pose.theta_rad - seen_pose.theta_rad
-    c0, s0 = math.cos(seen_pose.theta_rad), math.sin(seen_pose.theta_rad)
-    tx = pose.x_m - seen_pose.x_m
-    ty = pose.y_m - seen_pose.y_m
-    ox, oy = c0 * tx + s0 * ty, -s0 * tx + c0 * ty  # the current origin in that frame
-    c, s = math.cos(d_theta), math.sin(d_theta)
-    x = c * points_laser_m[:, 0] - s * points_laser_m[:, 1] + ox
-    y = s * points_laser_m[:, 0] + c * points_laser_m[:, 1] + oy
+    rel = free.pose.between(pose)
+    xy = rotate_points(points_laser_m, rel.theta_rad)
+    x, y = xy[:, 0] + rel.x_m, xy[:, 1] + rel.y_m
     r = np.hypot(x, y)
     beam = np.rint((np.arctan2(y, x) - free.angle_min_rad) / free.increment_rad).astype(np.int64)
     # The beams within `lateral_margin_m` of the point (at least ± `neighbour_beams`): an edge,

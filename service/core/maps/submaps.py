@@ -160,9 +160,8 @@ def likelihood_field(
     if observed is not None:
         # The observed grid is coarser by an integer factor: its cells, repeated, on ours.
         k = max(1, round(observed.resolution_m / res))
-        ci0, cj0 = observed.i0, observed.j0
         dense = np.repeat(np.repeat(observed.seen, k, axis=0), k, axis=1)
-        ci0, cj0 = ci0 * k, cj0 * k
+        ci0, cj0 = observed.i0 * k, observed.j0 * k
         if dense.size:
             lo = np.minimum(lo, (cj0 - radius, ci0 - radius))
             hi = np.maximum(hi, (cj0 + dense.shape[1] + radius, ci0 + dense.shape[0] + radius))
