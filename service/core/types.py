@@ -70,6 +70,40 @@ def rotate_points(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
     return out
 
 
+def convolve_valid(values: FloatArray, kernel: FloatArray) -> FloatArray:
+    """`np.convolve(values, kernel, mode="valid")` without BLAS.
+
+    `np.convolve` sums through the BLAS dot product, whose kernels differ in the last bits
+    (`OPENBLAS_CORETYPE`): a tie between two peaks then breaks one way or the other. Products
+    and sums of ufuncs round the same with every kernel.
+    """
+    windows = np.lib.stride_tricks.sliding_window_view(values, kernel.shape[0])
+    return np.asarray((windows * kernel[::-1]).sum(axis=1), dtype=np.float64)
+
+
+# Small products and solves in closed form, not through BLAS or LAPACK: their kernels differ in
+# the last bits (`OPENBLAS_CORETYPE`), and a gate or a tie downstream must not (see
+# `convolve_valid`).
+
+
+def matmul_exact(a: FloatArray, b: FloatArray) -> FloatArray:
+    """`a @ b` for small matrices, as element-wise products summed in a fixed order."""
+    return np.asarray((a[:, :, None] * b[None, :, :]).sum(axis=1), dtype=np.float64)
+
+
+def largest_eigenvalue_2x2(m: FloatArray) -> float:
+    """The larger eigenvalue of a symmetric 2×2 matrix."""
+    a, b, d = float(m[0, 0]), float(m[0, 1]), float(m[1, 1])
+    return 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)
+
+
+def mahalanobis_sq_2x2(d: FloatArray, cov: FloatArray) -> float:
+    """dᵀ·cov⁻¹·d for a symmetric positive-definite 2×2 `cov`."""
+    a, b, c = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
+    x, y = float(d[0]), float(d[1])
+    return (c * x * x - 2.0 * b * x * y + a * y * y) / (a * c - b * b)
+
+
 def wrap_angle(theta_rad: float) -> float:
     """Wrap to [-π, π)."""
     return (theta_rad + math.pi) % (2.0 * math.pi) - math.pi

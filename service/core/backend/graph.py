@@ -26,7 +26,7 @@ from typing import Any
 import gtsam
 import numpy as np
 
-from service.core.types import FloatArray, Pose2D
+from service.core.types import FloatArray, Pose2D, matmul_exact
 
 _COV_FLOOR = (1e-6, 1e-6, 1e-8)  # keeps a constraint's information matrix finite
 
@@ -67,7 +67,7 @@ def rotate_covariance(cov_map: FloatArray, theta_rad: float) -> FloatArray:
     """A 3×3 (x, y, θ) covariance on the map axes, expressed in a frame at heading θ."""
     c, s = math.cos(theta_rad), math.sin(theta_rad)
     rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
-    out: FloatArray = rot @ cov_map @ rot.T
+    out = matmul_exact(matmul_exact(rot, cov_map), rot.T)
     out[np.diag_indices(3)] += _COV_FLOOR
     return out
 
@@ -230,12 +230,3 @@ class PoseGraph:
         result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm).optimize()
         self._estimate = result
         return [_to_pose(result.atPose2(_key(i))) for i in range(self._count)]
-
-    def loop_residuals(self) -> list[float]:
-        """Whitened (Gaussian) residual norm of every closure at the current estimate."""
-        out = []
-        for a, b, relative, cov in self._loops:
-            pa, pb = self.estimate(a), self.estimate(b)
-            err = _pose2(pa).between(_pose2(pb)).localCoordinates(relative)
-            out.append(math.sqrt(float(err @ np.linalg.solve(cov, err))))
-        return out

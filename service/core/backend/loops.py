@@ -24,7 +24,13 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from service.core.maps.submaps import LikelihoodField, Submap
-from service.core.types import FloatArray, Pose2D, rotate_points
+from service.core.types import (
+    FloatArray,
+    Pose2D,
+    largest_eigenvalue_2x2,
+    mahalanobis_sq_2x2,
+    rotate_points,
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -203,7 +209,7 @@ def _response_cov(  # noqa: PLR0917 - a placement and the window to spread it ov
 
 
 def window_m(chain_cov_xy: FloatArray, params: LoopParams) -> float:
-    sigma = math.sqrt(max(float(np.max(np.linalg.eigvalsh(chain_cov_xy))), 0.0))
+    sigma = math.sqrt(max(largest_eigenvalue_2x2(chain_cov_xy), 0.0))
     return min(max(params.window_sigmas * sigma, params.window_min_m), params.window_max_m)
 
 
@@ -235,11 +241,11 @@ def verify(  # noqa: PLR0917 - the query, the candidate and the graph's view of 
     )
     if placement.score < params.min_score:
         return replace(result, reason="low_score")
-    loosest_m = math.sqrt(float(np.max(np.linalg.eigvalsh(placement.cov_xy))))
+    loosest_m = math.sqrt(max(largest_eigenvalue_2x2(placement.cov_xy), 0.0))
     rival = placement.rival_score >= params.ambiguity_ratio * placement.score
     if rival or loosest_m > params.max_match_sigma_m:
         return replace(result, reason="ambiguous")
     cov = chain_cov_xy + placement.cov_xy
-    if float(d @ np.linalg.solve(cov, d)) > params.chi2_gate:
+    if mahalanobis_sq_2x2(d, cov) > params.chi2_gate:
         return replace(result, reason="inconsistent")
     return replace(result, accepted=True, reason="accepted")

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 
-from service.core.types import FloatArray
+from service.core.types import FloatArray, convolve_valid
 
 _SIDE_OFFSET_M = 1.0e6  # far beyond any band: the two sides never pair
 _BUCKET_M = 0.5  # bucket of the other coordinate (a band is 0.15-0.4 m each side)
@@ -149,5 +149,5 @@ def correlate_axis_gated(  # noqa: PLR0917 - mirrors correlate_axis plus the ban
     hist = np.bincount(i0, weights=w * (1.0 - frac), minlength=n_ext)[:n_ext]
     hist += np.bincount(i0 + 1, weights=w * frac, minlength=n_ext)[:n_ext]
     tri = 1.0 - np.abs(np.arange(-half, half + 1)) / (half + 1)
-    energy = np.asarray(np.convolve(hist, tri, mode="valid"), dtype=np.float64)
+    energy = convolve_valid(hist.astype(np.float64, copy=False), tri)
     return shifts, energy

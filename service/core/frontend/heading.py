@@ -58,7 +58,8 @@ def _scratch(name: str, size: int, dtype: type[np.generic]) -> npt.NDArray[Any]:
 
 
 def _rotation_columns(angles_rad: FloatArray, bin_m: float) -> FloatArray:
-    """(2, 2K): p @ this = both coordinates of R(α)·p for every α, in bin units."""
+    """(2, 2K): row 0 multiplies x, row 1 multiplies y, giving both coordinates of R(α)·p for
+    every α, in bin units."""
     k = angles_rad.shape[0]
     c = np.cos(angles_rad)
     s = np.sin(angles_rad)
@@ -69,6 +70,19 @@ def _rotation_columns(angles_rad: FloatArray, bin_m: float) -> FloatArray:
     dirs[1, k:] = c
     dirs /= bin_m
     return dirs
+
+
+def _rotate_into(points_xy_m: FloatArray, columns: FloatArray, out: FloatArray) -> None:
+    """out (M, 2K) = x·columns[0] + y·columns[1], as two products and a sum per element.
+
+    Not a matrix product: BLAS kernels differ in the last bits (a fused multiply-add or not,
+    `OPENBLAS_CORETYPE`), a point on a bin edge then changes bins, and a decision downstream
+    with it (ACES: 0.138 or 0.192 m by kernel). Element-wise ufuncs round the same everywhere.
+    """
+    tmp = _scratch("rotate_tmp", out.size, np.float64).reshape(out.shape)
+    np.multiply(points_xy_m[:, 0:1], columns[0], out=out)
+    np.multiply(points_xy_m[:, 1:2], columns[1], out=tmp)
+    out += tmp
 
 
 def _projection_indices(
@@ -82,9 +96,9 @@ def _projection_indices(
     """
     k = angles_rad.shape[0]
     m = points_xy_m.shape[0]
-    # Both coordinates of R(α)·p for every α as one matrix product: (M, 2K).
+    # Both coordinates of R(α)·p for every α: (M, 2K).
     proj = _scratch("proj", m * 2 * k, np.float64).reshape(m, 2 * k)
-    np.matmul(points_xy_m, _rotation_columns(angles_rad, bin_m), out=proj)
+    _rotate_into(points_xy_m, _rotation_columns(angles_rad, bin_m), proj)
     lo = math.floor(float(proj.min())) - 1
     width = math.ceil(float(proj.max())) - lo + 2
     proj -= lo  # now positive: truncation is floor
@@ -97,11 +111,10 @@ def _projection_indices(
 def _hard_indices(
     points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float
 ) -> tuple[npt.NDArray[np.intp], int]:
-    """Flat bin indices (M, 2K) for hard binning, in a single matrix product.
+    """Flat bin indices (M, 2K) for hard binning.
 
-    The bin offset comes from the largest range instead of the data's extremes and is folded
-    into the product: only bin membership matters for hard bins, and an offset by whole bins
-    does not change it.
+    The bin offset comes from the largest range instead of the data's extremes: only bin
+    membership matters for hard bins, and an offset by whole bins does not change it.
     """
     k = angles_rad.shape[0]
     m = points_xy_m.shape[0]
@@ -110,14 +123,9 @@ def _hard_indices(
     r_bins = math.sqrt(r2_max) / bin_m
     lo = -math.ceil(r_bins) - 1
     width = math.ceil(r_bins) - lo + 2
-    mat = np.empty((3, 2 * k))
-    mat[:2] = _rotation_columns(angles_rad, bin_m)
-    mat[2] = -float(lo)
-    aug = np.empty((m, 3))
-    aug[:, :2] = points_xy_m
-    aug[:, 2] = 1.0
     proj = _scratch("proj", m * 2 * k, np.float64).reshape(m, 2 * k)
-    np.matmul(aug, mat, out=proj)
+    _rotate_into(points_xy_m, _rotation_columns(angles_rad, bin_m), proj)
+    proj -= float(lo)
     idx = _scratch("idx", m * 2 * k, np.intp).reshape(m, 2 * k)
     np.copyto(idx, proj, casting="unsafe")  # positive: truncation is floor
     idx += np.arange(2 * k, dtype=np.intp) * width

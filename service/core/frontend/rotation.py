@@ -16,7 +16,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.frontend.heading import parabolic_offset
-from service.core.types import FloatArray
+from service.core.types import FloatArray, convolve_valid
 
 _BIN_RAD = math.radians(0.5)
 _N_BINS = round(math.pi / _BIN_RAD)
@@ -80,7 +80,7 @@ def direction_counts(directions_rad: FloatArray) -> npt.NDArray[np.intp]:
 def _smoothed(counts: npt.NDArray[np.intp]) -> FloatArray:
     h = counts.astype(np.float64)
     padded = np.concatenate((h[-6:], h, h[:6]))
-    return np.asarray(np.convolve(padded, _SMOOTH, mode="valid"), dtype=np.float64)
+    return convolve_valid(padded, _SMOOTH)
 
 
 def direction_histogram(directions_rad: FloatArray) -> FloatArray:

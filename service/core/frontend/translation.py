@@ -155,7 +155,10 @@ def correlate_axis(
     # Row i of the sliding-window view = dens[b_i : b_i + K]: one fancy index, (M', K).
     step_b = dens.strides[0]
     windows = as_strided(dens, (n_starts, k), (step_b, step_b), writeable=False)
-    energy = summed[occupied] @ windows[occupied + s0]
+    rows = windows[occupied + s0]
+    # Row by row, not a BLAS product: kernels differ in the last bits (see heading.py).
+    rows *= summed[occupied, None]
+    energy = rows.sum(axis=0)
     return shifts, np.asarray(energy, dtype=np.float64)
 
 
