@@ -1,14 +1,18 @@
 """`ManhattanEstimator`: scan-to-map pose tracking from Manhattan walls (the paper, made robust).
 
-Per scan:
-1. valid points, thinned to ~0.05 m (paper §II-A.1);
-2. motion prediction: odometry when the scan carries it, else constant velocity;
-3. heading modulo 90° from projection histograms, searched around the predicted heading,
-   resolved to the absolute heading by the ±45° rule (paper §II); without odometry, while
-   turning, the quadrant is re-anchored on the local map's geometry (`_check_heading`);
-4. translation from 1-D histogram correlations along the map axes (paper §III) against a local
-   map of recent keyframes, centred on the prediction, sub-bin refined, with ambiguity checks;
-5. a joint 2-D check of the 1-D peak candidates and a small 2-D/rotation refinement.
+Per scan, each step a method of its own (`_process` runs them in order):
+1. `_predict`: odometry when the scan carries it, else constant motion (and the range
+   profiles' turn on slow scanners);
+2. `_points`: valid points, thinned to ~0.05 m (paper §II-A.1);
+3. `_heading`: the heading modulo 90° from projection histograms around the prediction,
+   resolved to the absolute heading by the ±45° rule (paper §II), in the axes of the wall
+   family the scan follows (`frames`); fallbacks and re-anchoring where walls fail;
+4. `_without_moved`: points in space an earlier scan saw through are left out (`dynamic`);
+5. `_translation`: 1-D histogram correlations along the family's axes (paper §III) against a
+   local map of recent keyframes, centred on the prediction, with ambiguity checks; an open
+   axis against the previous scan, then in 2-D against the local map's field; a 2-D refinement;
+6. `_confidence`: the match's confidence and σ per axis; `_commit` keeps the pose, its
+   covariance (`covariance`) and the keyframes.
 
 The map frame is set by the first scan: axes along its major walls (the member of the Manhattan
 family nearest the robot's forward direction is x), origin at the first scan's position.
@@ -192,6 +196,30 @@ class _ScanWork:
     weights: FloatArray | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class _Heading:
+    """The heading step's answer."""
+
+    theta_rad: float
+    measured: bool  # from the scan's walls (else a fallback: directions or the prediction)
+    quality: float  # 1 measured, 0.6 relative to the local map, 0.3 the prediction
+    flags: PoseFlag
+    measurement: HeadingMeasurement
+
+
+@dataclass(frozen=True, slots=True)
+class _Translation:
+    """The translation step's answer, on the axes of the wall family at `frame_rad`."""
+
+    x_m: float
+    y_m: float
+    along_x: AxisMatch
+    along_y: AxisMatch
+    frame_rad: float
+    flags: PoseFlag  # the heading's, with AMBIGUOUS_X / AMBIGUOUS_Y
+    field_sigmas_m: dict[int, float]  # σ of the axes the 2-D field measured
+
+
 class ManhattanEstimator:
     """Tracks the robot pose in the Manhattan map frame, one scan at a time."""
 
@@ -281,6 +309,7 @@ class ManhattanEstimator:
 
     # ------------------------------------------------------------------ steps
     def _points(self, scan: LaserScan) -> FloatArray:
+        """Step 2: the scan's valid returns in the laser frame, thinned."""
         ranges = np.asarray(scan.ranges_m, dtype=np.float64)
         if ranges.ndim != 1 or ranges.size == 0:
             return np.empty((0, 2))
@@ -312,7 +341,7 @@ class ManhattanEstimator:
         return self._beams[1]
 
     def _predict(self, scan: LaserScan) -> tuple[Pose2D, PoseFlag]:
-        """Predicted pose for `scan` and whether odometry produced it."""
+        """Step 1: the predicted pose for `scan`, and whether odometry produced it."""
         p = self.params
         if not self._initialised:
             return self._pose, PoseFlag.NONE
@@ -437,21 +466,45 @@ class ManhattanEstimator:
         return meas
 
     def _process(self, scan: LaserScan) -> PoseEstimate:
-        p = self.params
+        """One scan through the steps, in order: prediction, points, heading, moving objects
+        left out, translation, confidence and σ; `_commit` keeps the result."""
         pred, flags = self._predict(scan)
         pts = self._points(scan)
-        if pts.shape[0] < p.min_points:
+        if pts.shape[0] < self.params.min_points:
             return self._commit(scan, pred, 0.0, flags | PoseFlag.DEGENERATE, None)
+        work = _ScanWork(*self._directions(pts))
+        heading = self._heading(scan, pred, flags, pts, work)
+        if not self._initialised:
+            return self._first_pose(scan, pts, heading, work)
+        at = Pose2D(pred.x_m, pred.y_m, heading.theta_rad)
+        pts, work = self._without_moved(scan, pts, work, at)
+        move = self._translation(scan, pred, heading, pts, work)
+        if move is None:  # nothing to match against yet
+            return self._commit(scan, at, 0.2, heading.flags, pts, work=work)
+        quality, sigmas = self._confidence(heading, move)
+        phi = move.frame_rad
+        pose = Pose2D(*rotate_point(move.x_m, move.y_m, phi), heading.theta_rad)  # map axes
+        return self._commit(
+            scan, pose, quality, move.flags, pts, work=work, sigmas_m=sigmas, frame_rad=phi
+        )
 
-        # --- heading (paper §II) -------------------------------------------------------
+    def _heading(
+        self, scan: LaserScan, pred: Pose2D, flags: PoseFlag, pts: FloatArray, work: _ScanWork
+    ) -> _Heading:
+        """Step 3, the heading (paper §II): the Manhattan angle of the scan's walls, resolved
+        to the absolute heading near the prediction, with the fallbacks where walls fail.
+
+        Updates the wall families (`frames`) and the major axis; on the first scan, before
+        the map frame exists, only measures.
+        """
+        p = self.params
         odom_prior = bool(flags & PoseFlag.ODOMETRY_PRIOR)
         predicted = self._initialised and (p.use_prediction or odom_prior)
         sigma = math.radians(
             p.heading_prior_sigma_odom_deg if odom_prior else p.heading_prior_sigma_deg
         )
         prior_theta = pred.theta_rad
-        dirs, dirs_ok, dirs_weak = self._directions(pts)
-        work = _ScanWork(dirs, dirs_ok, dirs_weak)
+        dirs, dirs_ok = work.dirs_rad, work.dirs_ok
         if predicted and p.wall_frames:
             # The wall family the scan's surfaces follow: its walls give the heading.
             frame_before = self._frames.current
@@ -498,18 +551,7 @@ class ManhattanEstimator:
             flags |= PoseFlag.NON_MANHATTAN
             heading_ok = False
         if not self._initialised:
-            # First scan: the map axes are its major walls; x is the one nearest the robot's
-            # forward direction, so the first heading is the Manhattan angle itself.
-            self._major_axis = meas.major_axis
-            # Weak walls (a curved wall, clutter): the first family the robot measures on
-            # strong walls replaces them (`frames`), instead of being folded onto them.
-            self._frames.provisional = (
-                p.wall_frames
-                and pts.shape[0] >= p.translation_gate_min_points
-                and meas.peak_fraction < p.frames.new_anchor_peak_fraction
-            )
-            pose = Pose2D(0.0, 0.0, meas.angle_rad)
-            return self._commit(scan, pose, 1.0 if heading_ok else 0.3, flags, pts, work=work)
+            return _Heading(meas.angle_rad, heading_ok, 1.0 if heading_ok else 0.3, flags, meas)
         if heading_ok:
             # The ±45° rule: the member of the Manhattan family nearest the predicted heading
             # (the paper tracks it against the previous heading; the prediction is better).
@@ -560,21 +602,57 @@ class ManhattanEstimator:
                 theta = anchored
                 flags &= ~(PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL)
                 heading_ok, heading_quality = True, 1.0
+        return _Heading(wrap_angle(theta), heading_ok, heading_quality, flags, meas)
 
-        # --- translation (paper §III) --------------------------------------------------
-        theta = wrap_angle(theta)  # the pose's heading: `_commit` reuses `cur` when it matches
+    def _first_pose(
+        self, scan: LaserScan, pts: FloatArray, heading: _Heading, work: _ScanWork
+    ) -> PoseEstimate:
+        """The first scan sets the map frame: its heading, at the origin."""
+        p = self.params
+        # First scan: the map axes are its major walls; x is the one nearest the robot's
+        # forward direction, so the first heading is the Manhattan angle itself.
+        self._major_axis = heading.measurement.major_axis
+        # Weak walls (a curved wall, clutter): the first family the robot measures on
+        # strong walls replaces them (`frames`), instead of being folded onto them.
+        self._frames.provisional = (
+            p.wall_frames
+            and pts.shape[0] >= p.translation_gate_min_points
+            and heading.measurement.peak_fraction < p.frames.new_anchor_peak_fraction
+        )
+        pose = Pose2D(0.0, 0.0, heading.theta_rad)
+        return self._commit(scan, pose, heading.quality, heading.flags, pts, work=work)
+
+    def _without_moved(
+        self, scan: LaserScan, pts: FloatArray, work: _ScanWork, pose: Pose2D
+    ) -> tuple[FloatArray, _ScanWork]:
+        """Step 4: the scan without the points that moved in (`dynamic`), at `pose` (the
+        predicted position and the measured heading)."""
+        p = self.params
         # Dense scans only: on the two real logs (SICK, 180 beams, a pose per 0.1-0.5 s) it
         # measured worse (five starts: ACES median 0.14 -> 0.16 m, Intel 0.49 -> 1.85 m).
-        if p.dynamic_rejection and pts.shape[0] >= p.translation_gate_min_points:
-            keep = self._static(scan, pts, Pose2D(pred.x_m, pred.y_m, theta))
-            if keep is not None:
-                pts, dirs, dirs_ok, dirs_weak = (
-                    pts[keep],
-                    dirs[keep],
-                    dirs_ok[keep],
-                    dirs_weak[keep],
-                )
-                work = _ScanWork(dirs, dirs_ok, dirs_weak)
+        if not (p.dynamic_rejection and pts.shape[0] >= p.translation_gate_min_points):
+            return pts, work
+        keep = self._static(scan, pts, pose)
+        if keep is None:
+            return pts, work
+        return pts[keep], _ScanWork(work.dirs_rad[keep], work.dirs_ok[keep], work.dirs_weak[keep])
+
+    def _translation(
+        self,
+        scan: LaserScan,
+        pred: Pose2D,
+        heading: _Heading,
+        pts: FloatArray,
+        work: _ScanWork,
+    ) -> _Translation | None:
+        """Step 5, the translation (paper §III): 1-D correlations along the wall family's axes
+        against the local map, each open axis tried against the previous scan, then in 2-D
+        against the local map's field, then refined in 2-D. None: no local map yet.
+        """
+        p = self.params
+        theta, heading_ok, flags = heading.theta_rad, heading.measured, heading.flags
+        odom_prior = bool(flags & PoseFlag.ODOMETRY_PRIOR)
+        dirs, dirs_ok, dirs_weak = work.dirs_rad, work.dirs_ok, work.dirs_weak
         # Correlated along the axes of the wall family the heading came from (`frames`): in
         # a 30° wing the map axes would cut its walls at 30° and blur every histogram.
         phi = self._frames.angle_rad if p.wall_frames else 0.0
@@ -582,7 +660,7 @@ class ManhattanEstimator:
         cur = rotate_points(pts, theta - phi)
         ref = self._reference(phi)
         if ref is None:
-            return self._commit(scan, Pose2D(pred.x_m, pred.y_m, theta), 0.2, flags, pts, work=work)
+            return None
         if p.orientation_weighting:
             cur_w = orientation_weights(dirs, dirs_ok, theta - phi, weak=dirs_weak)
             if phi == 0.0:
@@ -713,7 +791,15 @@ class ManhattanEstimator:
         if p.refine_2d and (not gated or p.refine_2d_gated) and self._grid_ready():
             x, y = self._refine(cur, x, y, mx, my, phi)
 
-        q = heading_quality * (0.5 + 0.25 * mx.sharpness + 0.25 * my.sharpness)
+        return _Translation(x, y, mx, my, phi, flags, field_sigmas)
+
+    def _confidence(
+        self, heading: _Heading, move: _Translation
+    ) -> tuple[float, tuple[float | None, float | None]]:
+        """Step 6: the match's confidence in [0, 1] and its σ along both axes of its frame
+        (the 2-D field's where it measured an axis, else from the 1-D peak's shape)."""
+        mx, my, field_sigmas = move.along_x, move.along_y, move.field_sigmas_m
+        q = heading.quality * (0.5 + 0.25 * mx.sharpness + 0.25 * my.sharpness)
         if mx.ambiguous:
             q *= 0.7
         if my.ambiguous:
@@ -723,8 +809,7 @@ class ManhattanEstimator:
             field_sigmas.get(0, axis_sigma_m(mx, cov)),
             field_sigmas.get(1, axis_sigma_m(my, cov)),
         )
-        pose = Pose2D(*rotate_point(x, y, phi), theta)  # back to the map axes
-        return self._commit(scan, pose, q, flags, pts, work=work, sigmas_m=sigmas, frame_rad=phi)
+        return q, sigmas
 
     def _static(
         self, scan: LaserScan, pts: FloatArray, pose: Pose2D
