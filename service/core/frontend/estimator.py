@@ -1177,10 +1177,13 @@ class ManhattanEstimator:
         direction still stops a grazing wall point from voting along its wall.
         """
         p = self.params
+        dense = pts.shape[0] >= p.translation_gate_min_points
         dirs, close, line = split_tangent_directions(
-            pts, max_line_deviation=p.direction_line_deviation
+            pts,
+            max_line_deviation=p.direction_line_deviation,
+            one_sided=dense and p.end_directions,
         )
-        if pts.shape[0] < p.translation_gate_min_points:  # sparse
+        if not dense:
             return dirs, close | line, np.zeros_like(line)
         if not p.weak_directions:
             line[:] = False

@@ -73,6 +73,7 @@ class EstimatorParams:
     direction_min_contrast: float = 0.1
     direction_line_deviation: float = 0.05  # sparse scans: far collinear points get a direction
     weak_directions: bool = True  # dense scans: ... which only stops them voting along it
+    end_directions: bool = True  # dense scans: a wall's last return takes its wall's line
     coverage_cut: bool = True  # current points beyond the reference's coverage do not vote
     field_match: bool = True  # an axis left ambiguous is searched in 2-D (`field_match`)
     dynamic_rejection: bool = True  # points where the previous scan saw free space: moving

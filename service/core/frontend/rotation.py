@@ -40,11 +40,18 @@ def tangent_directions(
 
 
 def split_tangent_directions(
-    points_xy_m: FloatArray, max_gap_m: float = 0.3, max_line_deviation: float = 0.0
+    points_xy_m: FloatArray,
+    max_gap_m: float = 0.3,
+    max_line_deviation: float = 0.0,
+    *,
+    one_sided: bool = False,
 ) -> tuple[FloatArray, npt.NDArray[np.bool_], npt.NDArray[np.bool_]]:
     """`tangent_directions` with its two kinds of reliable point apart: (angles, close, line).
 
     `line` are the points with a direction only from far, collinear neighbours (not `close`).
+    `one_sided`: a point left without one whose four neighbours on one side are collinear
+    with it takes their line (`line`): the last return of a wall before the beams run out
+    (down a corridor, beyond the range) is on that wall, not a point without direction.
     """
     m = points_xy_m.shape[0]
     ang = np.zeros(m)
@@ -66,8 +73,17 @@ def split_tangent_directions(
             np.maximum(deviation, np.abs(d[:, 0] * v[:, 1] - d[:, 1] * v[:, 0]), out=deviation)
         collinear = deviation < max_line_deviation * (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
         line[2:-2] = collinear & ~good & distinct
-    ang[2:-2] = np.arctan2(d[:, 1], d[:, 0]) % math.pi
+    window_ang = np.arctan2(d[:, 1], d[:, 0]) % math.pi
+    ang[2:-2] = window_ang
     close[2:-2] = good & distinct
+    if one_sided and max_line_deviation > 0.0:
+        straight = collinear & distinct  # window w: points w .. w + 4
+        for first, last in ((4, m), (0, m - 4)):  # the window ending, then starting, at j
+            take = np.zeros(m, dtype=bool)
+            take[first:last] = straight
+            take &= ~(close | line)
+            ang[take] = window_ang[np.flatnonzero(take) - first]
+            line |= take
     return ang, close, line
 
 

@@ -11,7 +11,6 @@ import math
 from dataclasses import replace
 
 import numpy as np
-import pytest
 from test_estimator_known import box, cast, room  # sibling module (pytest's path)
 
 from clients.wire import PoseFlag
@@ -139,15 +138,11 @@ def test_translation_recovers_a_known_step() -> None:
     assert not move.flags & (PoseFlag.AMBIGUOUS_X | PoseFlag.AMBIGUOUS_Y)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="known failure (issue 14): the local field counts the strip of wall between the "
-    "reference's last far return and its 30 m reach as seen and empty, so a scan shifted along "
-    "the corridor scores worse there and the 2-D step 'measures' standing still (sigma 0.06 m)",
-)
 def test_confidence_drops_and_sigma_grows_along_a_plain_corridor() -> None:
     """Step 6 on step 5's answers: in a room both axes are sharp; in a corridor of plain walls
-    the along-corridor axis is ambiguous, with a lower confidence and a wider σ."""
+    the along-corridor axis is ambiguous, with a lower confidence and no σ (unmeasured: the
+    covariance grows) or a wide one. The last returns down the corridor, where the beams run
+    out, lie on their walls (`end_directions`): they must not pin the scan in place."""
     corridor = np.array([(-60.0, -1.2, 60.0, -1.2), (-60.0, 1.2, 60.0, 1.2)])
     answers = {}
     for name, segs in (("room", room()), ("corridor", corridor)):
@@ -164,5 +159,4 @@ def test_confidence_drops_and_sigma_grows_along_a_plain_corridor() -> None:
     assert not corridor_move.flags & PoseFlag.AMBIGUOUS_Y
     assert corridor_q < room_q
     assert room_sigmas[0] is not None
-    assert corridor_sigmas[0] is not None
-    assert corridor_sigmas[0] > 3.0 * room_sigmas[0]
+    assert corridor_sigmas[0] is None or corridor_sigmas[0] > 3.0 * room_sigmas[0]
