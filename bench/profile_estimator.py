@@ -11,6 +11,8 @@ Sequences (all scans are prepared before timing):
 
 Prints median / p99 ms per scan for each, optionally a cProfile top-20 over all of them, and
 records or compares the poses and flags (max position / heading difference, flag mismatches).
+`--steps` adds the cost of each of the front end's named steps (docs/estimator.md, "The steps
+of one scan"): mean and median ms per scan, and their share of the whole.
 
 `--against DIR` times another version of the estimator side by side, scan by scan alternately in
 this process (so machine load hits both alike), e.g. the last commit:
@@ -27,8 +29,10 @@ import os
 import pstats
 import sys
 import time
+from collections.abc import Callable
 from itertools import islice
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -105,6 +109,63 @@ def run(scans: list[LaserScan]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
     return times, cpu, poses, flags
 
 
+STEPS = (
+    "_predict",
+    "_points",
+    "_directions",
+    "_heading",
+    "_without_moved",
+    "_translation",
+    "_confidence",
+    "_commit",
+)
+
+
+def step_costs(scans: list[LaserScan]) -> dict[str, np.ndarray]:
+    """Per scan, the ms spent in each step (wrapped on one estimator), and in `process` whole."""
+    est = ManhattanEstimator()
+    spent = {name: np.zeros(len(scans)) for name in (*STEPS, "process")}
+    index = 0
+
+    inside = [False]  # a step called within another (`_commit` may find directions): its own
+
+    def timed(name: str, method: Callable[..., Any]) -> Callable[..., Any]:
+        def call(*args: Any, **kwargs: Any) -> Any:
+            if inside[0]:
+                return method(*args, **kwargs)
+            inside[0] = True
+            t0 = time.perf_counter_ns()
+            try:
+                return method(*args, **kwargs)
+            finally:
+                spent[name][index] += (time.perf_counter_ns() - t0) * 1e-6
+                inside[0] = False
+
+        return call
+
+    for name in STEPS:
+        setattr(est, name, timed(name, getattr(est, name)))
+    for index, scan in enumerate(scans):  # `timed` reads `index`
+        t0 = time.perf_counter_ns()
+        est.process(scan)
+        spent["process"][index] = (time.perf_counter_ns() - t0) * 1e-6
+    return spent
+
+
+def print_step_costs(name: str, spent: dict[str, np.ndarray]) -> None:
+    total = float(spent["process"].mean())
+    print(f"{name:12s} steps (ms per scan, mean / median, share of process {total:.3f} ms):")
+    accounted = np.zeros_like(spent["process"])
+    for step in STEPS:
+        accounted += spent[step]
+        mean = float(spent[step].mean())
+        print(
+            f"  {step:16s} {mean:6.3f} / {np.median(spent[step]):6.3f}  {100 * mean / total:5.1f} %"
+        )
+    rest = spent["process"] - accounted
+    print(f"  {'(rest)':16s} {rest.mean():6.3f} / {np.median(rest):6.3f}")
+
+
 def load_estimator(root: Path) -> type[ManhattanEstimator]:
     """`ManhattanEstimator` of the source tree `root` (its own `service` package, not ours)."""
     ours = {k: sys.modules.pop(k) for k in list(sys.modules) if k.split(".")[0] == "service"}
@@ -144,6 +205,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--live", type=int, default=0, help="N scans at 40 Hz (the live path)")
     ap.add_argument("--repeat", type=int, default=1, help="timed passes (best median kept)")
     ap.add_argument("--profile", action="store_true")
+    ap.add_argument("--steps", action="store_true", help="the cost of each front-end step")
     ap.add_argument(
         "--baseline", type=int, default=0, help="also time bench/paper_baseline.py on N scans"
     )
@@ -183,6 +245,10 @@ def main(argv: list[str] | None = None) -> int:
         medians[name] = float(np.median(best))
         results[f"{name}/poses"] = poses
         results[f"{name}/flags"] = flags
+
+    if a.steps:
+        for name, scans in seqs.items():
+            print_step_costs(name, step_costs(scans))
 
     if a.against is not None:
         other_cls = load_estimator(a.against)
