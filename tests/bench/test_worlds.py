@@ -152,9 +152,9 @@ def test_mcap_is_read_back_by_mapping_service_map(
     assert np.array_equal(front.stamps_ns, stamps)
     assert np.allclose(front.poses, est, atol=1e-5)  # no loop closure: the same poses
     assert front.keyframe[0]
-    # The column carries the keyframes (few here: the ring starts in its plain corridor, where
-    # the front end cannot see most of the motion; accuracy is the benchmark's business).
-    assert front.keyframe.sum() >= 2
+    # Without odometry the ring's start, in its plain corridor, is still mapped standing
+    # still (issue 14; accuracy is the benchmark's business): the keyframe column is checked
+    # on the odometry run below, where the motion is observed.
     r = score_run(truth_stamps, truth, stamps, est, front)
     assert r["missing"] == 0
     assert r["heading_max_deg"] < 1.0
@@ -167,6 +167,9 @@ def test_mcap_is_read_back_by_mapping_service_map(
     report = json.loads((out2 / "report.json").read_text())
     assert report["scans_with_odometry"] == 40
     assert report["input"]["has_odometry"] is True
+    with_odom = read_covariance_csv(out2 / "trajectory_covariance.csv")
+    assert with_odom.keyframe[0]
+    assert with_odom.keyframe.sum() >= 10  # 11 m driven, a keyframe every 0.3 m or so (22)
 
 
 @pytest.mark.parametrize("command", [[], ["write"], ["run"], ["list"]])
