@@ -602,6 +602,7 @@ class ManhattanEstimator:
                 theta = anchored
                 flags &= ~(PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL)
                 heading_ok, heading_quality = True, 1.0
+        # Wrapped: the pose's heading (`_commit` reuses the rotated points when it matches).
         return _Heading(wrap_angle(theta), heading_ok, heading_quality, flags, meas)
 
     def _first_pose(
