@@ -153,8 +153,10 @@ def test_mcap_is_read_back_by_mapping_service_map(
     assert np.allclose(front.poses, est, atol=1e-5)  # no loop closure: the same poses
     assert front.keyframe[0]
     # Without odometry the ring's start, in its plain corridor, is still mapped standing
-    # still (issue 14; accuracy is the benchmark's business): the keyframe column is checked
-    # on the odometry run below, where the motion is observed.
+    # still, and its covariance does not cover the 11 m driven: a person in front of the
+    # robot in the first scan leaves a shadow in the first keyframe whose edges the 2-D
+    # search takes for evidence (issue 14; accuracy is the benchmark's business). The
+    # keyframe column is checked on the odometry run below, where the motion is observed.
     r = score_run(truth_stamps, truth, stamps, est, front)
     assert r["missing"] == 0
     assert r["heading_max_deg"] < 1.0

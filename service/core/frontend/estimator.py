@@ -218,6 +218,8 @@ class _Translation:
     frame_rad: float
     flags: PoseFlag  # the heading's, with AMBIGUOUS_X / AMBIGUOUS_Y
     field_sigmas_m: dict[int, float]  # σ of the axes the 2-D field measured
+    # Axes measured against the previous scan: the motion since it, not the position.
+    step_axes: tuple[bool, bool] = (False, False)
 
 
 class ManhattanEstimator:
@@ -279,7 +281,7 @@ class ManhattanEstimator:
         self.__dict__.setdefault("_last_profile", None)
         self.__dict__.setdefault("_covariance", CovarianceTracker())
         self.__dict__.setdefault("_sensor_range_m", self.params.max_range_used_m)
-        self.__dict__.setdefault("_field_params", FieldMatchParams())
+        self.__dict__["_field_params"] = FieldMatchParams()  # defaults, pickled by position
         self.__dict__.setdefault("_increment_rad", math.radians(0.25))
         self.__dict__.setdefault("_frames", WallFrames(self.params.frames))
         self.__dict__.setdefault("_seen_keyframes", deque(maxlen=SeenThroughParams().keyframes))
@@ -403,7 +405,14 @@ class ManhattanEstimator:
         p = self.params
         if p.scan_period_s > 0.0:
             return p.scan_period_s
-        assert self._stamp_ns is not None
+        return self._step_s(scan)
+
+    def _step_s(self, scan: LaserScan) -> float:
+        """Time since the previous scan by the stamps (0 for the first), clipped to a factor
+        of the recent median period (bursty logged stamps); what the covariance grows with."""
+        p = self.params
+        if self._stamp_ns is None:
+            return 0.0
         dt = (scan.stamp_ns - self._stamp_ns) * 1e-9
         if len(self._periods_s) >= 5 and p.period_clip_ratio > 1.0:
             typical = float(np.median(self._periods_s))
@@ -485,7 +494,15 @@ class ManhattanEstimator:
         phi = move.frame_rad
         pose = Pose2D(*rotate_point(move.x_m, move.y_m, phi), heading.theta_rad)  # map axes
         return self._commit(
-            scan, pose, quality, move.flags, pts, work=work, sigmas_m=sigmas, frame_rad=phi
+            scan,
+            pose,
+            quality,
+            move.flags,
+            pts,
+            work=work,
+            sigmas_m=sigmas,
+            frame_rad=phi,
+            steps=move.step_axes,
         )
 
     def _heading(
@@ -690,10 +707,21 @@ class ManhattanEstimator:
         cur_w_all = cur_w
         if cut:
             cur_w = _covered(cur, cur_w, centre_xy, ref.centre_xy_m, ref.radius_m - half_t)
-        prior_sigma_t = 0.0
-        if p.use_prediction or odom_prior:
+        prior_sigma_t = (0.0, 0.0)
+        if odom_prior:
+            prior_sigma_t = (p.translation_prior_sigma_odom_m,) * 2
+        elif p.use_prediction:
+            # No narrower than the motion model's own uncertainty relative to the reference
+            # (`covariance`): from a standing start, or after a long carry, the speed is
+            # unknown and "standing still" is only a guess. Dense scans only: on both real
+            # logs (180-beam SICK) it measured worse (five starts: ACES 0.17 -> 0.23 m, Intel
+            # 0.40 -> 0.64 m), as items 11, 19 and 20 did.
+            carried_sigma = (0.0, 0.0)
+            if p.translation_prior_carried and cur.shape[0] >= p.translation_gate_min_points:
+                carried_sigma = self._covariance.predicted_sigmas_m(self._step_s(scan), phi)
             prior_sigma_t = (
-                p.translation_prior_sigma_odom_m if odom_prior else p.translation_prior_sigma_m
+                max(p.translation_prior_sigma_m, carried_sigma[0]),
+                max(p.translation_prior_sigma_m, carried_sigma[1]),
             )
         support = (float(cur_w[:, 0].sum()), float(cur_w[:, 1].sum()))
         gated: tuple[int, ...] = ()
@@ -716,7 +744,7 @@ class ManhattanEstimator:
                 min_support=min_support,
                 ambiguity_ratio=p.ambiguity_ratio,
                 refine=p.subbin_refinement,
-                prior_sigma_m=prior_sigma_t,
+                prior_sigma_m=prior_sigma_t[axis],
             )
 
         matches: dict[int, AxisMatch] = {}
@@ -736,6 +764,7 @@ class ManhattanEstimator:
         # a crisp reference (the local map is blurred by its keyframes' own errors) and, over one
         # scan, a small motion, so a few points suffice (ACES: a robot stopped in a corridor
         # was predicted on at its last speed).
+        steps = [False, False]
         if p.previous_scan_fallback and not odom_prior and self._last_scan is not None:
             last = self._last_scan.in_frame(phi)
             last_w: FloatArray | None = None  # the weights against it, once for both axes
@@ -758,6 +787,7 @@ class ManhattanEstimator:
                 fallback = peak(axis, curve, p.previous_scan_min_support)
                 if not fallback.ambiguous:
                     matches[axis] = fallback
+                    steps[axis] = True
         # An axis still open: every point in 2-D, against the local map's likelihood field.
         field_sigmas: dict[int, float] = {}
         if p.field_match and dense:
@@ -766,10 +796,19 @@ class ManhattanEstimator:
                     continue
                 at = [matches[0].offset_m, matches[1].offset_m]
                 at[axis] = centre_xy[axis]
-                prior_sigma = prior_sigma_t if prior_sigma_t > 0.0 else half_t
+                prior_sigma = prior_sigma_t[axis] if prior_sigma_t[axis] > 0.0 else half_t
+                # As in 1-D: a point a shift can carry out of the field's known disc votes
+                # for the shifts that keep it in (the reference's own position).
+                placed = cur + np.array(at)
+                reach = ref.full_radius_m - half_t
+                dx = placed[:, 0] - ref.centre_xy_m[0]
+                dy = placed[:, 1] - ref.centre_xy_m[1]
+                inside = np.flatnonzero(dx * dx + dy * dy <= max(reach, 0.0) ** 2)
+                if inside.shape[0] < p.min_points:
+                    continue
                 response = axis_response(
                     self._field(ref),
-                    cur + np.array(at),
+                    placed.take(inside, axis=0),
                     axis,
                     half_t,
                     self._field_params,
@@ -777,9 +816,10 @@ class ManhattanEstimator:
                 )
                 if response.measured:
                     value = centre_xy[axis] + response.offset_m
-                    sharp = 1.0 - response.sigma_m / prior_sigma
+                    sharp = 1.0 - response.sigma_m / response.prior_spread_m
                     matches[axis] = AxisMatch(value, (value,), sharp, support[axis], False)
                     field_sigmas[axis] = response.sigma_m
+                    steps[axis] = False
         mx, my = matches[0], matches[1]
         x, y = mx.offset_m, my.offset_m
         if mx.ambiguous:
@@ -792,7 +832,7 @@ class ManhattanEstimator:
         if p.refine_2d and (not gated or p.refine_2d_gated) and self._grid_ready():
             x, y = self._refine(cur, x, y, mx, my, phi)
 
-        return _Translation(x, y, mx, my, phi, flags, field_sigmas)
+        return _Translation(x, y, mx, my, phi, flags, field_sigmas, (steps[0], steps[1]))
 
     def _confidence(
         self, heading: _Heading, move: _Translation
@@ -1238,9 +1278,11 @@ class ManhattanEstimator:
         work: _ScanWork | None = None,
         sigmas_m: tuple[float | None, float | None] = (None, None),
         frame_rad: float = 0.0,
+        steps: tuple[bool, bool] = (False, False),
     ) -> PoseEstimate:
         """Keep the pose and its motion; `sigmas_m` are the match σ (None: not measured) along
-        the axes of the wall family at `frame_rad`."""
+        the axes of the wall family at `frame_rad`, of the motion since the previous scan
+        where `steps`."""
         p = self.params
         if self._initialised and self._stamp_ns is not None:
             dt = self._dt_s(scan)
@@ -1339,8 +1381,9 @@ class ManhattanEstimator:
             covariance = self._covariance.update(
                 *sigmas_m,
                 heading_anchored=self._heading_measured,
-                degenerate=bool(flags & PoseFlag.DEGENERATE),
+                dt_s=self._step_s(scan),
                 frame_rad=frame_rad,
+                steps=steps,
             )
         if is_kf:
             self._covariance.restart()

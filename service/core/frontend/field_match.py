@@ -44,6 +44,7 @@ class AxisResponse:
     offset_m: float  # the response's mean
     sigma_m: float  # its spread
     measured: bool  # one clear peak inside the window
+    prior_spread_m: float  # the prior's own spread as the window sees it
 
 
 def surface_points(
@@ -178,5 +179,9 @@ def axis_response(
     sigma = math.sqrt(float((w * (shifts - mean) ** 2).sum()))
     # A peak at the window's edge may be a slope that goes on outside it.
     inside = abs(mean) <= half_window_m - 3.0 * params.step_m
-    measured = inside and sigma <= params.informative_ratio * prior_sigma_m
-    return AxisResponse(mean, max(sigma, params.sigma_floor_m), measured)
+    # Narrowed against the prior as the window sees it: a prior wider than the window is
+    # the window's own spread, which a flat response keeps (it must not read as a peak).
+    prior_w = np.exp(-0.5 * (shifts / prior_sigma_m) ** 2)
+    prior_spread = math.sqrt(float((prior_w * shifts**2).sum() / prior_w.sum()))
+    measured = inside and sigma <= params.informative_ratio * prior_spread
+    return AxisResponse(mean, max(sigma, params.sigma_floor_m), measured, prior_spread)

@@ -59,6 +59,7 @@ class EstimatorParams:
     translation_window_min_m: float = 0.2  # ... but at least this (0.1: 40 Hz drift, 1.9 m)
     translation_prior_sigma_m: float = 0.1  # trust in a constant-velocity prediction (0: none)
     translation_prior_sigma_odom_m: float = 0.06  # trust in an odometry prediction
+    translation_prior_carried: bool = True  # ... no narrower than the prediction's own σ
     subbin_refinement: bool = True  # parabolic peak refinement (heading and translation)
     orientation_weighting: bool = True  # wall points vote only on the axis they constrain
     reference: ReferenceMode = "local_map"
