@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -102,6 +103,18 @@ def mahalanobis_sq_2x2(d: FloatArray, cov: FloatArray) -> float:
     a, b, c = float(cov[0, 0]), float(cov[0, 1]), float(cov[1, 1])
     x, y = float(d[0]), float(d[1])
     return (c * x * x - 2.0 * b * x * y + a * y * y) / (a * c - b * b)
+
+
+def fields_by_name(obj: Any) -> dict[str, object]:
+    """A dataclass's fields by name: what it pickles as, so that a checkpoint keeps its values
+    when a later version adds fields (the dataclass default pickles by position)."""
+    return {f.name: getattr(obj, f.name) for f in fields(obj)}
+
+
+def restore_fields(obj: Any, values: Mapping[str, object], defaults: Any) -> None:
+    """Set each field of the (frozen) dataclass `obj` from `values`, else from `defaults`."""
+    for f in fields(obj):
+        object.__setattr__(obj, f.name, values.get(f.name, getattr(defaults, f.name)))
 
 
 def wrap_angle(theta_rad: float) -> float:

@@ -18,10 +18,10 @@ millimetres, a flat one centimetres, an ambiguous one no measurement at all.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field, replace
 
 from service.core.frontend.translation import AxisMatch
-from service.core.types import Covariance3
+from service.core.types import Covariance3, fields_by_name, restore_fields
 
 
 @dataclass(frozen=True, slots=True)
@@ -38,13 +38,10 @@ class CovarianceParams:
 
     # Pickled by name (a session checkpoint keeps it): a later version may add fields.
     def __getstate__(self) -> dict[str, object]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        return fields_by_name(self)
 
     def __setstate__(self, state: object) -> None:
-        values = state if isinstance(state, dict) else {}
-        defaults = CovarianceParams()
-        for f in fields(self):
-            object.__setattr__(self, f.name, values.get(f.name, getattr(defaults, f.name)))
+        restore_fields(self, state if isinstance(state, dict) else {}, CovarianceParams())
 
 
 def axis_sigma_m(match: AxisMatch, params: CovarianceParams) -> float | None:
@@ -124,7 +121,7 @@ class CovarianceTracker:
 
     # Pickled by name: a checkpoint of an older version (a σ per axis, no speeds) restarts.
     def __getstate__(self) -> dict[str, object]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        return fields_by_name(self)
 
     def __setstate__(self, state: object) -> None:
         if isinstance(state, tuple) and len(state) == 2:  # slots pickled by `object` (older)
@@ -138,19 +135,13 @@ class CovarianceTracker:
             expected = type(getattr(fresh, name))
             setattr(self, name, value if isinstance(value, expected) else getattr(fresh, name))
 
-    @property
-    def var_x(self) -> float:
-        return self.along_x.pos_var_m2
-
-    @property
-    def var_y(self) -> float:
-        return self.along_y.pos_var_m2
-
     def predicted_sigmas_m(self, dt_s: float, frame_rad: float) -> tuple[float, float]:
         """σ of the pose predicted `dt_s` ahead, relative to the latest keyframe, along the axes
         of the wall family at `frame_rad` (isotropic, the larger, if those are not the
         tracker's). Nothing is changed: this is what the search window and prior read."""
         q, t = self.params.accel_psd_m2_s3, max(dt_s, 0.0)
+        # `AxisCovariance.predict`'s variance, summed in this order: the prior it sets is a
+        # decision input, and another order moves its last bits (a tuning ring's map with it).
         x, y = (
             math.sqrt(
                 a.pos_var_m2
@@ -188,8 +179,7 @@ class CovarianceTracker:
         p = self.params
         if frame_rad != self.frame_rad:
             larger = max(self.along_x, self.along_y, key=lambda a: a.pos_var_m2)
-            self.along_x = AxisCovariance(*_values(larger))
-            self.along_y = AxisCovariance(*_values(larger))
+            self.along_x, self.along_y = replace(larger), replace(larger)
             self.frame_rad = frame_rad
         max_speed_var = p.unknown_speed_sigma_m_s**2
         dt = max(dt_s, 0.0)
@@ -210,7 +200,7 @@ class CovarianceTracker:
 
     def covariance(self) -> Covariance3:
         """Row-major 3×3 (x, y, θ), map axes."""
-        var_x, var_y, phi = self.var_x, self.var_y, self.frame_rad
+        var_x, var_y, phi = self.along_x.pos_var_m2, self.along_y.pos_var_m2, self.frame_rad
         if phi == 0.0:
             return (var_x, 0.0, 0.0, 0.0, var_y, 0.0, 0.0, 0.0, self.var_theta)
         c, s = math.cos(phi), math.sin(phi)  # R diag(var_x, var_y) Rᵀ
@@ -218,7 +208,3 @@ class CovarianceTracker:
         yy = s * s * var_x + c * c * var_y
         xy = c * s * (var_x - var_y)
         return (xx, xy, 0.0, xy, yy, 0.0, 0.0, 0.0, self.var_theta)
-
-
-def _values(axis: AxisCovariance) -> tuple[float, float, float]:
-    return axis.pos_var_m2, axis.pos_speed_cov_m2_s, axis.speed_var_m2_s2

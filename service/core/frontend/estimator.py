@@ -91,6 +91,18 @@ def _sides(points_map_m: FloatArray, pose: Pose2D) -> npt.NDArray[np.bool_]:
     return out
 
 
+def _outside(
+    rotated_m: FloatArray,
+    centre_xy_m: tuple[float, float],
+    ref_xy_m: tuple[float, float],
+    radius_m: float,
+) -> npt.NDArray[np.bool_]:
+    """Which points, placed at `centre_xy_m`, lie beyond `radius_m` of `ref_xy_m`."""
+    dx = rotated_m[:, 0] + (centre_xy_m[0] - ref_xy_m[0])
+    dy = rotated_m[:, 1] + (centre_xy_m[1] - ref_xy_m[1])
+    return dx * dx + dy * dy > max(radius_m, 0.0) ** 2
+
+
 def _covered(
     rotated_m: FloatArray,
     weights: FloatArray,
@@ -103,9 +115,7 @@ def _covered(
     Beyond what the reference covers its density is zero: a point that a shift can move out
     of it votes for the shifts that keep it inside, i.e. for the reference's own position.
     """
-    dx = rotated_m[:, 0] + (centre_xy_m[0] - ref_xy_m[0])
-    dy = rotated_m[:, 1] + (centre_xy_m[1] - ref_xy_m[1])
-    outside = dx * dx + dy * dy > max(radius_m, 0.0) ** 2
+    outside = _outside(rotated_m, centre_xy_m, ref_xy_m, radius_m)
     if not outside.any():
         return weights
     covered = weights.copy()
@@ -717,7 +727,7 @@ class ManhattanEstimator:
             # logs (180-beam SICK) it measured worse (five starts: ACES 0.17 -> 0.23 m, Intel
             # 0.40 -> 0.64 m), as items 11, 19 and 20 did.
             carried_sigma = (0.0, 0.0)
-            if p.translation_prior_carried and cur.shape[0] >= p.translation_gate_min_points:
+            if p.translation_prior_carried and dense:
                 carried_sigma = self._covariance.predicted_sigmas_m(self._step_s(scan), phi)
             prior_sigma_t = (
                 max(p.translation_prior_sigma_m, carried_sigma[0]),
@@ -799,16 +809,13 @@ class ManhattanEstimator:
                 prior_sigma = prior_sigma_t[axis] if prior_sigma_t[axis] > 0.0 else half_t
                 # As in 1-D: a point a shift can carry out of the field's known disc votes
                 # for the shifts that keep it in (the reference's own position).
-                placed = cur + np.array(at)
                 reach = ref.full_radius_m - half_t
-                dx = placed[:, 0] - ref.centre_xy_m[0]
-                dy = placed[:, 1] - ref.centre_xy_m[1]
-                inside = np.flatnonzero(dx * dx + dy * dy <= max(reach, 0.0) ** 2)
+                inside = np.flatnonzero(~_outside(cur, (at[0], at[1]), ref.centre_xy_m, reach))
                 if inside.shape[0] < p.min_points:
                     continue
                 response = axis_response(
                     self._field(ref),
-                    placed.take(inside, axis=0),
+                    cur.take(inside, axis=0) + np.array(at),
                     axis,
                     half_t,
                     self._field_params,
@@ -819,7 +826,6 @@ class ManhattanEstimator:
                     sharp = 1.0 - response.sigma_m / response.prior_spread_m
                     matches[axis] = AxisMatch(value, (value,), sharp, support[axis], False)
                     field_sigmas[axis] = response.sigma_m
-                    steps[axis] = False
         mx, my = matches[0], matches[1]
         x, y = mx.offset_m, my.offset_m
         if mx.ambiguous:

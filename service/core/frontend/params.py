@@ -8,11 +8,12 @@ each step's effect.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Literal
 
 from service.core.frontend.dynamic import SeenThroughParams
 from service.core.frontend.frames import FrameParams
+from service.core.types import fields_by_name, restore_fields
 
 ReferenceMode = Literal["previous", "keyframe", "local_map"]
 HeadingScore = Literal["max", "energy"]
@@ -111,11 +112,9 @@ class EstimatorParams:
     # Pickled by name, not by position (the dataclass default): a checkpoint keeps its values
     # when a later version adds parameters, which take their defaults.
     def __getstate__(self) -> dict[str, object]:
-        return {f.name: getattr(self, f.name) for f in fields(self)}
+        return fields_by_name(self)
 
     def __setstate__(self, state: object) -> None:
         if not isinstance(state, dict):
             raise TypeError("estimator parameters pickled by position (an older version)")
-        defaults = EstimatorParams()
-        for f in fields(self):
-            object.__setattr__(self, f.name, state.get(f.name, getattr(defaults, f.name)))
+        restore_fields(self, state, EstimatorParams())
