@@ -10,6 +10,11 @@ to Haswell or Zen) and the Sandybridge one (also with Prescott):
 - without odometry: 0.138 m / 0.446° (Haswell), 0.192 m / 0.449° (Sandybridge): the second is
   worse than the published 0.173 m, which docs/benchmarks.md reports as a miss.
 
+numpy's own SIMD kernels move it too: numpy 2.4 on an AVX-512 machine (AMD EPYC) computes
+`np.arctan2`, `np.exp` and other transcendental functions with AVX-512 code whose last bits
+differ, and ACES without odometry gives 0.218 m / 0.450° there (0.166 m / 0.449° on the same
+machine with `NPY_DISABLE_CPU_FEATURES=X86_V4,AVX512_ICL`).
+
 Bounds: the worse kernel plus about 10 %. The core estimator is tested here, not the offline
 mapper, so a back end added to `mapping-service map` does not move these figures.
 """
@@ -66,7 +71,7 @@ def test_aces_without_odometry_keeps_the_heading_quadrant() -> None:
     """A lost quadrant puts every later loop relation metres and tens of degrees off."""
     trans_m, rot_deg = _aces_relation_errors(use_odometry=False)
     assert rot_deg < 0.5, rot_deg  # 0.446-0.449° measured
-    assert trans_m < 0.21, trans_m  # 0.138-0.192 m measured (published scan matching 0.173)
+    assert trans_m < 0.24, trans_m  # 0.138-0.218 m measured (published scan matching 0.173)
 
 
 @pytest.mark.slow
