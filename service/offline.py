@@ -205,6 +205,7 @@ def _loop_report(stats: LoopStats | None) -> dict[str, Any] | None:
         "rejected": dict(sorted(stats.rejected.items())),
         "search_s": round(stats.search_s, 3),
         "optimise_s": round(stats.optimise_s, 3),
+        "solver_restarts": stats.solver_restarts,
     }
 
 

@@ -55,6 +55,7 @@ class LoopStats:
     search_s: float = 0.0  # loop search
     optimise_s: float = 0.0  # iSAM2 and the final batch
     total_s: float = 0.0  # all of the back end: nodes, submaps, search, optimisation
+    solver_restarts: int = 0  # iSAM2 rebuilt after a failed update (`PoseGraph.update`)
     closures: list[LoopResult] = field(default_factory=list)  # the accepted ones
     # The latest refused searches, for the live graph endpoint (bounded: Intel has ~1,600).
     recent_rejected: deque[LoopResult] = field(default_factory=lambda: deque(maxlen=256))
@@ -135,6 +136,7 @@ class SlamBackend:
             self._search(node)
             self.stats.search_s += time.perf_counter() - t1
         self.stats.total_s += time.perf_counter() - t0
+        self.stats.solver_restarts = self.graph.isam_restarts
         return self.stats.accepted > accepted
 
     # ------------------------------------------------------------------ loop search
@@ -201,6 +203,7 @@ class SlamBackend:
             self._optimised = self.graph.optimize_batch()
             self.stats.optimise_s += time.perf_counter() - t0
             self.stats.total_s += time.perf_counter() - t0
+            self.stats.solver_restarts = self.graph.isam_restarts
         return self.node_poses()
 
     def node_poses(self) -> list[Pose2D]:

@@ -19,6 +19,7 @@ everything.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -27,6 +28,8 @@ import gtsam
 import numpy as np
 
 from service.core.types import FloatArray, Pose2D, matmul_exact
+
+log = logging.getLogger(__name__)
 
 _COV_FLOOR = (1e-6, 1e-6, 1e-8)  # keeps a constraint's information matrix finite
 
@@ -82,9 +85,8 @@ class PoseGraph:
         self.edges: list[Edge] = []
         self.heading_priors = 0
         self._loops: list[tuple[int, int, gtsam.Pose2, FloatArray]] = []
-        isam_params = gtsam.ISAM2Params()
-        isam_params.setRelinearizeThreshold(self.params.relinearize_threshold)
-        self._isam = gtsam.ISAM2(isam_params)
+        self._isam = self._new_isam()
+        self.isam_restarts = 0  # iSAM2 rebuilt from every factor after a failed update
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._estimate: gtsam.Values | None = None
@@ -92,6 +94,13 @@ class PoseGraph:
         # Every factor as plain data (kind, numbers), so the graph can be saved without gtsam
         # objects (`__getstate__`) and rebuilt (`__setstate__`).
         self._records: list[tuple[Any, ...]] = []
+
+    def _new_isam(self, *, qr: bool = False) -> gtsam.ISAM2:
+        isam_params = gtsam.ISAM2Params()
+        isam_params.setRelinearizeThreshold(self.params.relinearize_threshold)
+        if qr:
+            isam_params.setFactorization("QR")
+        return gtsam.ISAM2(isam_params)
 
     @property
     def node_count(self) -> int:
@@ -196,10 +205,43 @@ class PoseGraph:
         """iSAM2 step with what was added since the last one."""
         if self._new_factors.size() == 0 and self._new_values.size() == 0:
             return
-        self._isam.update(self._new_factors, self._new_values)
+        try:
+            self._isam.update(self._new_factors, self._new_values)
+        except RuntimeError as exc:  # gtsam's IndeterminateSystemException
+            # Cholesky squares the condition number: on a poorly conditioned graph (Intel with
+            # odometry: three closures to one old node, gtsam 4.3) it fails where the same
+            # factors solve by QR, which the rebuilt iSAM2 uses from then on. A failure of
+            # that is a real one and propagates.
+            log.warning(
+                "iSAM2 update failed at %d nodes (%s); rebuilt from all %d factors with QR",
+                self._count,
+                str(exc).strip().splitlines()[0],
+                self.graph.size() + len(self._loops),
+            )
+            self._restart_isam()
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._estimate = None
+
+    def _restart_isam(self) -> None:
+        """A new iSAM2 (QR) with every factor, linearised at the last estimate (new nodes at
+        their first guess)."""
+        try:
+            last = self._isam.calculateEstimate() if self._isam.size() > 0 else gtsam.Values()
+        except RuntimeError:
+            last = gtsam.Values()
+        values = gtsam.Values()
+        for i in range(self._count):
+            key = _key(i)
+            source = last if last.exists(key) else self._new_values
+            values.insert(key, (source if source.exists(key) else self.initial).atPose2(key))
+        graph = gtsam.NonlinearFactorGraph(self.graph)
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(self.params.loop_huber_k)
+        for loop in self._loops:
+            graph.add(self._loop_factor(loop, huber))
+        self._isam = self._new_isam(qr=True)
+        self._isam.update(graph, values)
+        self.isam_restarts += 1
 
     def estimate(self, node: int) -> Pose2D:
         """The current estimate of a node (after `update`; else its first guess)."""

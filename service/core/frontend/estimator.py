@@ -48,6 +48,7 @@ from service.core.frontend.heading import (
     thin_points,
     track_heading,
 )
+from service.core.frontend.odometry import OdometryConsistency
 from service.core.frontend.params import EstimatorParams
 from service.core.frontend.profile import profile_turn
 from service.core.frontend.refine import OccupiedCells
@@ -263,6 +264,7 @@ class ManhattanEstimator:
         self._heading_measured = False  # the last pose's heading came from its Manhattan walls
         self._beams: tuple[tuple[float, float, int], FloatArray] | None = None
         self._covariance = CovarianceTracker()  # of the pose relative to the latest keyframe
+        self._odometry = OdometryConsistency()  # how far the odometry's heading holds
         self._sensor_range_m = self.params.max_range_used_m  # the current scan's, set by `_points`
         self._field_params = FieldMatchParams()
         self._increment_rad = math.radians(0.25)  # the current scan's beam step, set by `_points`
@@ -290,6 +292,7 @@ class ManhattanEstimator:
         self.__dict__["_last_scan_densities"] = {}  # a cache (older keys: axis alone)
         self.__dict__.setdefault("_last_profile", None)
         self.__dict__.setdefault("_covariance", CovarianceTracker())
+        self.__dict__.setdefault("_odometry", OdometryConsistency())
         self.__dict__.setdefault("_sensor_range_m", self.params.max_range_used_m)
         self.__dict__["_field_params"] = FieldMatchParams()  # defaults, pickled by position
         self.__dict__.setdefault("_increment_rad", math.radians(0.25))
@@ -527,9 +530,17 @@ class ManhattanEstimator:
         p = self.params
         odom_prior = bool(flags & PoseFlag.ODOMETRY_PRIOR)
         predicted = self._initialised and (p.use_prediction or odom_prior)
-        sigma = math.radians(
-            p.heading_prior_sigma_odom_deg if odom_prior else p.heading_prior_sigma_deg
-        )
+        sigma = math.radians(p.heading_prior_sigma_deg)
+        # How far a relative heading may have drifted from the walls, for re-anchoring on
+        # them: without odometry up to `wall_reanchor_max_deg`; with it, as far as the
+        # odometry's own errors carry it since the walls last measured it (`odometry`), and
+        # its prior no narrower than that (no wider than the constant-velocity one).
+        reanchor_max = math.radians(p.wall_reanchor_max_deg)
+        if odom_prior:
+            odom_sigma = math.radians(p.heading_prior_sigma_odom_deg)
+            drift = self._odometry.heading_drift_rad() if p.odometry_consistency else 0.0
+            reanchor_max = min(reanchor_max, 3.0 * drift) if drift > odom_sigma else 0.0
+            sigma = min(math.hypot(odom_sigma, drift), sigma)
         prior_theta = pred.theta_rad
         dirs, dirs_ok = work.dirs_rad, work.dirs_ok
         if predicted and p.wall_frames:
@@ -621,10 +632,10 @@ class ManhattanEstimator:
             predicted
             and not heading_ok
             and not new_family
-            and not odom_prior
+            and reanchor_max > 0.0
             and p.wall_reanchor_fraction > 0.0
         ):
-            anchored = self._reanchor_on_walls(pts, meas, theta)
+            anchored = self._reanchor_on_walls(pts, meas, theta, reanchor_max)
             if anchored is not None:
                 theta = anchored
                 flags &= ~(PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL)
@@ -1077,7 +1088,7 @@ class ManhattanEstimator:
         return True
 
     def _reanchor_on_walls(
-        self, pts: FloatArray, meas: HeadingMeasurement, theta: float
+        self, pts: FloatArray, meas: HeadingMeasurement, theta: float, max_rad: float
     ) -> float | None:
         """The paper's absolute heading again, after a relative one drifted from the walls.
 
@@ -1085,14 +1096,14 @@ class ManhattanEstimator:
         the Manhattan search around it then no longer reaches the walls: each scan is 'without
         a dominant wall' and the drift stays (Intel: 24° from scan ~420 on). When the paper's
         prior-free search finds strong walls, the member of their family nearest the current
-        heading is taken (the ±45° rule), if the correction is plausible as drift.
+        heading is taken (the ±45° rule), if the correction is plausible as drift (`max_rad`).
         """
         p = self.params
         free = self._free_heading(pts, meas)
         if free.peak_fraction < p.wall_reanchor_fraction:
             return None
         anchored, _ = self._frames.nearest_member(free.angle_rad, theta)
-        if abs(wrap_angle(anchored - theta)) > math.radians(p.wall_reanchor_max_deg):
+        if abs(wrap_angle(anchored - theta)) > max_rad:
             return None
         return anchored
 
@@ -1326,6 +1337,7 @@ class ManhattanEstimator:
                     if flags & weak:
                         w = p.turn_rate_decay * v.theta_rad
                 self._velocity = Pose2D(vx, vy, w)
+        odom_before = self._odom
         if scan.odom is not None:
             self._odom = scan.odom
         if p.profile_turn and p.use_prediction:
@@ -1380,7 +1392,14 @@ class ManhattanEstimator:
                 if p.reference != "previous":
                     self._ref = None
         lost = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
+        measured_before = self._heading_measured
         self._heading_measured = pts is not None and not flags & lost
+        if flags & PoseFlag.ODOMETRY_PRIOR and odom_before is not None and scan.odom is not None:
+            innovation: float | None = None
+            if measured_before and self._heading_measured:  # the odometry's error over one scan
+                turn = wrap_angle(scan.odom.theta_rad - odom_before.theta_rad)
+                innovation = wrap_angle(pose.theta_rad - self._pose.theta_rad - turn)
+            self._odometry.observe(innovation, self._heading_measured)
         if not self._initialised:
             covariance = self._covariance.covariance()  # the first pose defines the map frame
         else:

@@ -35,7 +35,8 @@ class EstimatorParams:
     use_prediction: bool = True  # centre the searches on a motion prediction
     heading_score: HeadingScore = "energy"  # "max" = the paper's hmax(θ); "energy" = Σ h²
     heading_prior_sigma_deg: float = 10.0  # trust in a constant-velocity heading prediction
-    heading_prior_sigma_odom_deg: float = 4.0  # trust in an odometry heading prediction
+    heading_prior_sigma_odom_deg: float = 4.0  # trust in an odometry heading prediction ...
+    odometry_consistency: bool = True  # ... growing while the heading follows it (`odometry`)
     heading_max_offset_sigmas: float = 3.0  # farther from the prediction: NON_MANHATTAN
     heading_coarse_step_deg: float = 1.0  # coarse 90° search step (then the paper's 0.1°)
     heading_coarse_bin_m: float = 0.05

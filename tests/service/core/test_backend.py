@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import pickle
+from typing import Any
 
 import numpy as np
 import pytest
@@ -297,3 +298,54 @@ def test_a_submap_saved_with_its_field_by_an_older_version_still_loads() -> None
     xy = np.stack(np.meshgrid(np.arange(-2.0, 10.0, 0.05), np.arange(-2.0, 8.0, 0.05)), axis=-1)
     assert np.array_equal(rebuilt.lookup(xy), field.lookup(xy))  # the same field, cell for cell
     assert np.array_equal(rebuilt.lookup(xy, known=True), field.lookup(xy, known=True))
+
+
+class _FailingOnce:
+    """iSAM2 whose next update raises as gtsam does on a poorly conditioned system (Intel with
+    odometry hit it at node 283; no small graph reproduces gtsam's Cholesky failing)."""
+
+    def __init__(self, isam: Any) -> None:
+        self._isam, self.failed = isam, False
+
+    def update(self, *args: Any) -> None:
+        if not self.failed:
+            self.failed = True
+            raise RuntimeError("Indeterminate linear system detected while working near x5")
+        self._isam.update(*args)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._isam, name)
+
+
+def _square_graph(*, fail_at: int | None = None) -> PoseGraph:
+    """`_solve`'s graph, updated at node 100 and at the end; iSAM2 fails once after `fail_at`."""
+    truth, drifted = _square_chain(0.01)
+    graph = PoseGraph()
+    for i, pose in enumerate(drifted):
+        graph.add_node(pose)
+        if i:
+            rel = drifted[i - 1].between(pose)
+            graph.add_sequential(i - 1, i, rel, np.diag([0.02**2, 0.02**2, math.radians(0.5) ** 2]))
+        graph.add_heading_prior(i, truth[i].theta_rad, math.radians(0.3))
+        if i == 100:
+            graph.update()
+            if fail_at == i:
+                graph._isam = _FailingOnce(graph._isam)
+    for a in range(0, 80, 10):
+        cov = np.diag([0.03**2, 0.03**2, math.radians(0.3) ** 2])
+        graph.add_loop(a, a + 80, truth[a].between(truth[a + 80]), cov)
+    graph.update()
+    return graph
+
+
+def test_a_failed_isam2_update_is_rebuilt_from_every_factor() -> None:
+    clean = _square_graph()
+    graph = _square_graph(fail_at=100)  # the closures' update fails, and is rebuilt
+    assert (clean.isam_restarts, graph.isam_restarts) == (0, 1)
+    assert _max_distance(graph.estimates(), clean.estimates()) < 0.01
+    assert _max_distance(graph.optimize_batch(), clean.optimize_batch()) < 1e-4
+    last = graph.add_node(graph.estimate(graph.node_count - 1))  # and it goes on updating
+    graph.add_sequential(last - 1, last, Pose2D(0.0, 0.0, 0.0), np.diag([1e-4, 1e-4, 1e-4]))
+    graph.update()
+    assert _max_distance([graph.estimate(last)], [graph.estimate(last - 1)]) < 1e-3
+    assert graph.isam_restarts == 1

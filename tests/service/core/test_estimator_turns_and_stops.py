@@ -74,16 +74,21 @@ def test_fast_turn_in_a_round_hall_keeps_the_heading() -> None:
     assert errors[False] > 5.0, errors
 
 
-@pytest.mark.parametrize(("drift_deg", "anchored"), [(14.0, True), (-25.0, True), (40.0, False)])
+@pytest.mark.parametrize(
+    ("drift_deg", "bound_deg", "anchored"),
+    [(14.0, 30.0, True), (-25.0, 30.0, True), (40.0, 30.0, False), (14.0, 10.0, False)],
+)
 def test_drifted_relative_heading_is_reanchored_on_strong_walls(
-    drift_deg: float, anchored: bool
+    drift_deg: float, bound_deg: float, anchored: bool
 ) -> None:
-    """A relative heading that drifted from the walls snaps back (within the drift bound)."""
+    """A relative heading that drifted from the walls snaps back within the drift bound (30°
+    without odometry; with it, as far as the odometry can have drifted)."""
     truth = Pose2D(0.2, 0.1, math.radians(17.0))
     est = ManhattanEstimator(EstimatorParams(use_odometry=False))
     pts = est._points(cast(room(), truth, noise_m=0.005, rng=np.random.default_rng(4)))
     meas = measure_heading(pts, None, 0.0, math.radians(0.1), 0.02)
-    got = est._reanchor_on_walls(pts, meas, truth.theta_rad + math.radians(drift_deg))
+    drifted = truth.theta_rad + math.radians(drift_deg)
+    got = est._reanchor_on_walls(pts, meas, drifted, math.radians(bound_deg))
     if not anchored:
         assert got is None
         return
@@ -97,7 +102,7 @@ def test_walls_too_weak_do_not_reanchor() -> None:
         cast(_hall(), Pose2D(0.0, 0.0, 0.3), noise_m=0.01, rng=np.random.default_rng(1))
     )
     meas = measure_heading(pts, None, 0.0, math.radians(0.1), 0.02)
-    assert est._reanchor_on_walls(pts, meas, 0.5) is None
+    assert est._reanchor_on_walls(pts, meas, 0.5, math.radians(30.0)) is None
 
 
 def test_parameters_pickled_by_name_take_defaults_for_newer_ones() -> None:
