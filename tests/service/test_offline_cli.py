@@ -153,8 +153,9 @@ def test_map_recording_writes_every_output(
     assert report["map"]["resolution_m"] == pytest.approx(0.1)
     # Loops are closed by default: the back end reports what it did and what it cost.
     loops = report["loop_closures"]
-    assert set(loops) == {"accepted", "rejected", "search_s", "optimise_s"}
+    assert set(loops) == {"accepted", "rejected", "search_s", "optimise_s", "solver_restarts"}
     assert loops["accepted"] >= 0
+    assert loops["solver_restarts"] == 0
     assert report["backend_s"] > 0.0
     assert "loop closure:" in result.stdout
 
