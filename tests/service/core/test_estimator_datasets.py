@@ -60,8 +60,8 @@ def _aces_relation_errors(*, use_odometry: bool) -> tuple[float, float]:
 def test_aces_with_odometry_beats_sequential_scan_matching() -> None:
     trans_m, rot_deg = _aces_relation_errors(use_odometry=True)
     assert trans_m < PUBLISHED_SEQUENTIAL_SCAN_MATCHING_M
-    assert trans_m < 0.095, trans_m  # 0.087 m measured
-    assert rot_deg < 0.53, rot_deg  # 0.485° measured
+    assert trans_m < 0.095, trans_m  # 0.087 m measured; 0.065 m since session 10's item 27
+    assert rot_deg < 0.53, rot_deg  # 0.485° measured; 0.473° since
 
 
 @pytest.mark.slow
