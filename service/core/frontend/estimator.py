@@ -79,6 +79,11 @@ from service.core.types import (
 
 log = logging.getLogger(__name__)
 
+# A pose whose position some axis of the match did not measure, and one whose heading the
+# building's walls did not.
+_POSITION_UNSURE = PoseFlag.DEGENERATE | PoseFlag.AMBIGUOUS_X | PoseFlag.AMBIGUOUS_Y
+_HEADING_UNSURE = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
+
 
 def _sides(points_map_m: FloatArray, pose: Pose2D) -> npt.NDArray[np.bool_]:
     """(M, 2): whether each point lies on the + side of its scan's sensor along x / y.
@@ -346,6 +351,11 @@ class ManhattanEstimator:
         pts = cos_sin.take(idx, axis=0)
         pts *= r[:, None]
         return thin_points(pts, self.params.thinning_m)
+
+    def _dense(self, points: FloatArray) -> bool:
+        """A dense scan (a UTM-30LX's, not a 180-beam SICK's): the steps measured to help only
+        on such scans run on it."""
+        return int(points.shape[0]) >= self.params.translation_gate_min_points
 
     def _beam_directions(self, angle_min_rad: float, increment_rad: float, n: int) -> FloatArray:
         """(n, 2) cos/sin of every beam, computed once per scanner geometry (speed)."""
@@ -621,7 +631,7 @@ class ManhattanEstimator:
         new_family = False
         # Dense scans only: on the two real logs (SICK, 180 beams) families were found that
         # are not in the building (Intel, five starts: median 0.49 -> 1.44 m).
-        if predicted and p.wall_frames and pts.shape[0] >= p.translation_gate_min_points:
+        if predicted and p.wall_frames and self._dense(pts):
             # The heading that measures a new family must stand on strong walls: a heading
             # walked off along a curved wall measures its own error as a "family" (hall worlds).
             strong = meas.peak_fraction >= p.frames.new_anchor_peak_fraction
@@ -655,7 +665,7 @@ class ManhattanEstimator:
         # strong walls replaces them (`frames`), instead of being folded onto them.
         self._frames.provisional = (
             p.wall_frames
-            and pts.shape[0] >= p.translation_gate_min_points
+            and self._dense(pts)
             and heading.measurement.peak_fraction < p.frames.new_anchor_peak_fraction
         )
         pose = Pose2D(0.0, 0.0, heading.theta_rad)
@@ -669,7 +679,7 @@ class ManhattanEstimator:
         p = self.params
         # Dense scans only: on the two real logs (SICK, 180 beams, a pose per 0.1-0.5 s) it
         # measured worse (five starts: ACES median 0.14 -> 0.16 m, Intel 0.49 -> 1.85 m).
-        if not (p.dynamic_rejection and pts.shape[0] >= p.translation_gate_min_points):
+        if not (p.dynamic_rejection and self._dense(pts)):
             return pts, work
         keep = self._static(scan, pts, pose)
         if keep is None:
@@ -723,7 +733,7 @@ class ManhattanEstimator:
         # Dense scans only (a UTM-30LX, not a 180-beam SICK): on both real logs, SICK scans,
         # the coverage cut and the 2-D search measured worse (ACES 0.14 -> 0.15-0.26 m, Intel
         # 0.49 -> 0.47-1.33 m, medians over five starts), the way items 11 and 17 did.
-        dense = cur.shape[0] >= p.translation_gate_min_points
+        dense = self._dense(cur)
         cut = p.coverage_cut and dense
         cur_w_all = cur_w
         if cut:
@@ -748,11 +758,7 @@ class ManhattanEstimator:
         gated: tuple[int, ...] = ()
         # The band needs the heading: on a fallback heading the 1-D projections are kept. On
         # sparse scans (180-beam SICK) it measured worse: too few points pair in the band.
-        if (
-            p.translation_gate_m > 0.0
-            and heading_ok
-            and cur.shape[0] >= p.translation_gate_min_points
-        ):
+        if p.translation_gate_m > 0.0 and heading_ok and dense:
             # The axis with fewer constraining points is the along-corridor one, where a few
             # faces decide and projection aliasing bites (`service.core.frontend.gated`).
             gated = (0, 1) if p.translation_gate_both else (int(support[1] < support[0]),)
@@ -1235,7 +1241,7 @@ class ManhattanEstimator:
         direction still stops a grazing wall point from voting along its wall.
         """
         p = self.params
-        dense = pts.shape[0] >= p.translation_gate_min_points
+        dense = self._dense(pts)
         dirs, close, line = split_tangent_directions(
             pts,
             max_line_deviation=p.direction_line_deviation,
@@ -1305,7 +1311,6 @@ class ManhattanEstimator:
             dt = self._dt_s(scan)
             # An ambiguous match says little about the motion: keep the previous velocity, so
             # that a featureless corridor does not stop the robot (the stationary-lock failure).
-            unsure = PoseFlag.DEGENERATE | PoseFlag.AMBIGUOUS_X | PoseFlag.AMBIGUOUS_Y
             if 1e-4 < dt < 2.0:
                 d = self._pose.between(pose)
                 vx, vy, w = d.x_m / dt, d.y_m / dt, d.theta_rad / dt
@@ -1321,7 +1326,7 @@ class ManhattanEstimator:
                         0.3 * v.y_m + 0.7 * vy,
                         0.3 * v.theta_rad + 0.7 * w,
                     )
-                    if flags & unsure:
+                    if flags & _POSITION_UNSURE:
                         vx, vy = v.x_m, v.y_m
                     # Bounded acceleration: a match one door period ahead along a corridor
                     # must not feed back into a faster and faster prediction (runaway).
@@ -1333,8 +1338,7 @@ class ManhattanEstimator:
                     # The turn rate is measured only by a confident heading; otherwise it decays,
                     # so that a turn does not go on being predicted through a corridor or
                     # clutter (the overshoot that lost the heading quadrant).
-                    weak = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
-                    if flags & weak:
+                    if flags & _HEADING_UNSURE:
                         w = p.turn_rate_decay * v.theta_rad
                 self._velocity = Pose2D(vx, vy, w)
         odom_before = self._odom
@@ -1345,11 +1349,7 @@ class ManhattanEstimator:
             ranges = np.array(scan.ranges_m, dtype=np.float64)  # a copy: the caller's may change
             self._last_profile = (key, ranges, scan.range_min_m, scan.range_max_m)
         self._last_free = None
-        if (
-            p.dynamic_rejection
-            and pts is not None
-            and pts.shape[0] >= p.translation_gate_min_points
-        ):
+        if p.dynamic_rejection and pts is not None and self._dense(pts):
             self._last_free = FreeSpace.of(
                 pose,
                 np.asarray(scan.ranges_m, dtype=np.float64),
@@ -1391,9 +1391,8 @@ class ManhattanEstimator:
                 self._dir_spectrum = None
                 if p.reference != "previous":
                     self._ref = None
-        lost = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
         measured_before = self._heading_measured
-        self._heading_measured = pts is not None and not flags & lost
+        self._heading_measured = pts is not None and not flags & _HEADING_UNSURE
         if flags & PoseFlag.ODOMETRY_PRIOR and odom_before is not None and scan.odom is not None:
             innovation: float | None = None
             if measured_before and self._heading_measured:  # the odometry's error over one scan
