@@ -13,7 +13,8 @@ the path red, its start green) and `<family>-<seed>.json` (what was generated).
 
 `run` does that for every world of a set, runs the same command a user runs,
 `mapping-service map INPUT --out DIR --no-odom --no-loop-closure` (with `--loop-closure`: the
-back end on), in a subprocess, and scores its outputs against the ground truth:
+back end on; with `--odom`: the worlds carry drifting wheel odometry and are mapped with it), in a
+subprocess, and scores its outputs against the ground truth:
 
 - loop gap: the last pose seen from the first, against the truth (the path returns to its start);
 - heading error: |(theta_i - theta_0) - (true_i - true_0)| over all poses, max and 99th percentile;
@@ -428,6 +429,7 @@ def run_world(
     work_dir: Path,
     keep_dir: Path | None,
     loop_closure: bool = False,
+    odometry: bool = False,
     timeout_s: float = 1800.0,
 ) -> dict[str, Any]:
     """Generate, write, map with the CLI in a subprocess, score; one world."""
@@ -437,11 +439,12 @@ def run_world(
     gw = generate(family, seed)
     name = gw.name
     world_dir = work_dir / name
-    files = write_world(gw, world_dir)
+    files = write_world(gw, world_dir, odometry=odometry)
     gen_s = time.perf_counter() - t0
     out = world_dir / "map"
-    cmd = [*_cli_command(), "map", str(files["mcap"]), "--out", str(out), "--no-odom",
-           "--no-progress"]  # fmt: skip
+    cmd = [*_cli_command(), "map", str(files["mcap"]), "--out", str(out), "--no-progress"]
+    if not odometry:
+        cmd.append("--no-odom")
     if not loop_closure:
         cmd.append("--no-loop-closure")
     t1 = time.perf_counter()
@@ -501,7 +504,13 @@ _COLUMNS: Final = (
 )
 
 
-def summarise(results: Sequence[dict[str, Any]], *, set_name: str, loop_closure: bool) -> str:
+def summarise(
+    results: Sequence[dict[str, Any]],
+    *,
+    set_name: str,
+    loop_closure: bool,
+    odometry: bool = False,
+) -> str:
     """The Markdown tables and verdicts of one benchmark run."""
     for r in results:
         if "nees_mean" in r and r.get("nees_mean") is not None:
@@ -567,16 +576,21 @@ def summarise(results: Sequence[dict[str, Any]], *, set_name: str, loop_closure:
             f"- {len(failed)} world(s) failed to map: "
             + "; ".join(f"{r['name']}: {r['error'][:120]}" for r in failed)
         )
-    mode = "loop closure on" if loop_closure else "front end alone"
-    command = f"python -m bench.worlds run --set {set_name}" + (
-        " --loop-closure" if loop_closure else ""
+    mode = ("loop closure on" if loop_closure else "front end alone") + (
+        ", with odometry" if odometry else ""
+    )
+    command = (
+        f"python -m bench.worlds run --set {set_name}"
+        + (" --loop-closure" if loop_closure else "")
+        + (" --odom" if odometry else "")
     )
     parts = [
         f"### {set_name.capitalize()} set, {mode} ({len(results)} worlds)",
         "",
         (
             f"`{command}`: each world written as MCAP and mapped by `mapping-service map INPUT "
-            f"--out DIR --no-odom{'' if loop_closure else ' --no-loop-closure'}` in a "
+            f"--out DIR{'' if odometry else ' --no-odom'}"
+            f"{'' if loop_closure else ' --no-loop-closure'}` in a "
             "subprocess. Cells: median / 90th percentile / worst over the worlds. NEES / 3 is "
             "each world's mean NEES of the motion since the latest keyframe, over its dimension "
             "(1 = honest covariance)."
@@ -612,6 +626,7 @@ def run_set(
     out_dir: Path,
     jobs: int,
     loop_closure: bool,
+    odometry: bool = False,
     progress: bool = True,
 ) -> tuple[list[dict[str, Any]], str]:
     from tqdm import tqdm
@@ -632,6 +647,7 @@ def run_set(
                 work_dir=Path(tmp),
                 keep_dir=keep,
                 loop_closure=loop_closure,
+                odometry=odometry,
             ): (fam, seed)
             for fam, seed in worlds
         }
@@ -662,7 +678,7 @@ def run_set(
                 bar.set_postfix_str(f"{r['name']} gap {r['loop_gap_m']:.2f} m")
         bar.close()
     results.sort(key=lambda r: (r["family"], r["seed"]))
-    markdown = summarise(results, set_name=set_name, loop_closure=loop_closure)
+    markdown = summarise(results, set_name=set_name, loop_closure=loop_closure, odometry=odometry)
     wall = time.perf_counter() - start
     try:
         load = os.getloadavg()
@@ -674,13 +690,15 @@ def run_set(
         "set": set_name,
         "git_commit": git_commit(),
         "loop_closure": loop_closure,
+        "odometry": odometry,
         "jobs": jobs,
         "wall_s": round(wall, 1),
         "load_average_end": [round(v, 2) for v in load],
         "openblas_coretype": os.environ.get("OPENBLAS_CORETYPE"),
         "worlds": results,
     }
-    suffix = "-loop-closure" if loop_closure else ""
+    # With odometry the files carry "-odom": `write_doc`'s sets are the no-odometry runs.
+    suffix = ("-loop-closure" if loop_closure else "") + ("-odom" if odometry else "")
     (out_dir / f"{set_name}{suffix}.json").write_text(json.dumps(_finite(payload), indent=2) + "\n")
     markdown += (
         f"\n_{len(results)} worlds in {wall:.0f} s with {jobs} job(s); load average at the end "
@@ -852,6 +870,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p_run.add_argument("--jobs", type=int, default=2, help="worlds in parallel (default: 2)")
     p_run.add_argument("--loop-closure", action="store_true", help="the back end on too")
+    p_run.add_argument(
+        "--odom",
+        action="store_true",
+        help="worlds with drifting wheel odometry, mapped with it (default: --no-odom)",
+    )
     p_run.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR")
     p_run.add_argument("--no-progress", action="store_true", help="no progress bar")
     p_run.add_argument(
@@ -905,6 +928,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out_dir=args.out,
         jobs=max(1, args.jobs),
         loop_closure=args.loop_closure,
+        odometry=args.odom,
         progress=not args.no_progress,
     )
     sys.stdout.write(markdown + "\n")
