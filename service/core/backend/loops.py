@@ -137,19 +137,32 @@ def place_scan(
     half = max(1, math.ceil(half_window_m / block))
     best = (-1.0, guess)
     rotated: dict[float, FloatArray] = {}  # the query points at each searched rotation
-    cand_blocks: list[tuple[float, float, float, float]] = []  # (bound, theta, x0, y0)
+    xs = guess.x_m + block * np.arange(-half, half + 1, dtype=np.float64)
+    ys = guess.y_m + block * np.arange(-half, half + 1, dtype=np.float64)
+    # Every block with a bound > 0, as arrays (thousands per search: no Python tuples), in
+    # rotation then row-major order; the stable sort by bound keeps that order among ties.
+    bounds, thetas, block_x, block_y = [], [], [], []
     for k in range(-n_rot, n_rot + 1):
         theta = guess.theta_rad + math.radians(k * params.rotation_step_deg)
         pts = rotated[theta] = rotate_points(points_m, theta)
-        xs = guess.x_m + block * np.arange(-half, half + 1, dtype=np.float64)
-        ys = guess.y_m + block * np.arange(-half, half + 1, dtype=np.float64)
         coarse = _scores(field, pts, xs, ys, True, params.min_known_fraction)
-        for iy, ix in zip(*np.nonzero(coarse > 0.0), strict=True):
-            cand_blocks.append((float(coarse[iy, ix]), theta, float(xs[ix]), float(ys[iy])))
-    cand_blocks.sort(key=lambda c: -c[0])
+        rows, cols = np.nonzero(coarse > 0.0)
+        bounds.append(coarse[rows, cols])
+        thetas.append(np.full(rows.shape[0], theta))
+        block_x.append(xs[cols])
+        block_y.append(ys[rows])
+    bound_all = np.concatenate(bounds)
+    order = np.argsort(-bound_all, kind="stable")[: params.max_refined_blocks]
+    candidates = zip(
+        bound_all[order].tolist(),
+        np.concatenate(thetas)[order].tolist(),
+        np.concatenate(block_x)[order].tolist(),
+        np.concatenate(block_y)[order].tolist(),
+        strict=True,
+    )
     offsets = res * np.arange(field.coarse_factor, dtype=np.float64)
     fine_peaks: list[tuple[float, float, float, float]] = []  # (score, theta, x, y) per block
-    for bound, theta, x0, y0 in cand_blocks[: params.max_refined_blocks]:
+    for bound, theta, x0, y0 in candidates:
         # A rival needs only to beat the ambiguity threshold, not the best: refine blocks whose
         # bound could reach it, so the rival score is exact where it matters.
         floor = params.ambiguity_ratio * max(best[0], params.min_score)
