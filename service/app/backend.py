@@ -67,6 +67,7 @@ class GraphSnapshot:
     errors: int  # nodes the back end failed on (logged)
     image_revision: int
     map_bytes: int = 0  # the map chunks' memory
+    solver_restarts: int = 0  # iSAM2 rebuilt with QR after a failed update (`PoseGraph`)
     corrections: npt.NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
@@ -309,6 +310,7 @@ class LiveBackend:
                 errors=self.errors,
                 image_revision=self._image_revision,
                 map_bytes=core.chunks.nbytes if core.chunks is not None else 0,
+                solver_restarts=core.graph.isam_restarts,
                 corrections=_corrections(fe, opt),
             )
             self._snapshot = snap

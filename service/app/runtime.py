@@ -161,6 +161,11 @@ class MappingRuntime:
             lambda: self._loop_gauge(accepted=False),
         )
         self.metrics.gauge(
+            "mapping_graph_solver_restarts",
+            "iSAM2 rebuilt from every factor with QR after a failed update, by session.",
+            self._solver_restart_gauge,
+        )
+        self.metrics.gauge(
             "mapping_robots_alive",
             "Robots whose agent liveliness token is present.",
             self._alive_gauge,
@@ -421,6 +426,14 @@ class MappingRuntime:
                     (labels(session=session.id, reason=reason), float(n))
                     for reason, n in sorted(snap.rejected.items())
                 )
+        return out
+
+    def _solver_restart_gauge(self) -> list[tuple[Labels, float]]:
+        out: list[tuple[Labels, float]] = []
+        for session in self.sessions.list():
+            snap = session.graph_counts()
+            if snap is not None and snap.nodes:
+                out.append((labels(session=session.id), float(snap.solver_restarts)))
         return out
 
     def _session_gauge(self) -> list[tuple[Labels, float]]:

@@ -100,6 +100,9 @@ class LoopClosureCounts(BaseModel):
     )
     nodes: int = Field(description="nodes (keyframes) in the pose graph")
     pending: int = Field(description="nodes queued for the back end, not yet in the graph")
+    solver_restarts: int = Field(
+        0, description="iSAM2 rebuilt from every factor with QR after a failed update"
+    )
 
     @classmethod
     def of(cls, snap: GraphSnapshot) -> LoopClosureCounts:
@@ -108,6 +111,7 @@ class LoopClosureCounts(BaseModel):
             rejected=dict(sorted(snap.rejected.items())),
             nodes=snap.nodes,
             pending=snap.pending,
+            solver_restarts=snap.solver_restarts,
         )
 
 

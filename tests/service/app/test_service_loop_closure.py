@@ -163,6 +163,9 @@ def test_loop_closure_in_process(runtime: MappingRuntime) -> None:
         assert len(nodes) <= len(now["nodes"]) <= len(nodes) + 5
         metrics = runtime.metrics.render()
         assert f'mapping_loop_closures_accepted{{session="{sid}"}}' in metrics
+        # The solver never needed its QR rebuild here; the counter says so (`PoseGraph.update`).
+        assert now["loop_closures"]["solver_restarts"] == 0
+        assert f'mapping_graph_solver_restarts{{session="{sid}"}} 0' in metrics
 
         # The map is the chunks composed at the optimised poses (drawn by the back end).
         yaml_text = client.get(f"/sessions/{sid}/map.yaml").text
