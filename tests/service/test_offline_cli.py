@@ -217,14 +217,12 @@ def test_map_damaged_urg_bag(tmp_path: Path) -> None:
 
 def _tum_relation_error_m(trajectory: Path, relations: Path) -> float:
     """Mean translational relation error of a `trajectory.tum` (the relation metric)."""
+    from bench.worlds import read_tum
     from service.core.metrics import parse_relations, relation_errors
     from service.core.types import Pose2D
 
-    rows = [line.split() for line in trajectory.read_text().splitlines() if line]
-    stamps = [round(float(r[0]) * 1e9) for r in rows]
-    poses = [
-        Pose2D(float(r[1]), float(r[2]), 2.0 * math.atan2(float(r[6]), float(r[7]))) for r in rows
-    ]
+    stamps, xyt = read_tum(trajectory)
+    poses = [Pose2D(*map(float, row)) for row in xyt]
     errors = relation_errors(stamps, poses, parse_relations(relations.read_text().splitlines()))
     assert errors.missing == 0
     return errors.trans_mean_m

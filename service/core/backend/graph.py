@@ -119,6 +119,13 @@ class PoseGraph:
         noise = gtsam.noiseModel.Robust.Create(kernel, gtsam.noiseModel.Gaussian.Covariance(cov))
         return gtsam.BetweenFactorPose2(_key(a), _key(b), relative, noise)
 
+    def _with_loops(self, kernel: gtsam.noiseModel.mEstimator.Base) -> gtsam.NonlinearFactorGraph:
+        """Every factor, the closures behind `kernel` (`self.graph` holds all but those)."""
+        graph = gtsam.NonlinearFactorGraph(self.graph)
+        for loop in self._loops:
+            graph.add(self._loop_factor(loop, kernel))
+        return graph
+
     def add_node(self, guess: Pose2D) -> int:
         """A new node at `guess` (map frame); returns its index. Node 0 gets the prior."""
         node = self._count
@@ -235,12 +242,9 @@ class PoseGraph:
             key = _key(i)
             source = last if last.exists(key) else self._new_values
             values.insert(key, (source if source.exists(key) else self.initial).atPose2(key))
-        graph = gtsam.NonlinearFactorGraph(self.graph)
         huber = gtsam.noiseModel.mEstimator.Huber.Create(self.params.loop_huber_k)
-        for loop in self._loops:
-            graph.add(self._loop_factor(loop, huber))
         self._isam = self._new_isam(qr=True)
-        self._isam.update(graph, values)
+        self._isam.update(self._with_loops(huber), values)
         self.isam_restarts += 1
 
     def estimate(self, node: int) -> Pose2D:
@@ -263,10 +267,8 @@ class PoseGraph:
         start = gtsam.Values()
         for i in range(self._count):
             start.insert(_key(i), _pose2(self.estimate(i)))
-        graph = gtsam.NonlinearFactorGraph(self.graph)
         cauchy = gtsam.noiseModel.mEstimator.Cauchy.Create(self.params.loop_cauchy_k)
-        for loop in self._loops:
-            graph.add(self._loop_factor(loop, cauchy))
+        graph = self._with_loops(cauchy)
         lm = gtsam.LevenbergMarquardtParams()
         lm.setMaxIterations(self.params.batch_max_iterations)
         result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm).optimize()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import pickle
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -194,12 +195,16 @@ def _square_chain(drift_per_step_m: float) -> tuple[list[Pose2D], list[Pose2D]]:
     return truth, drifted
 
 
-def _solve(
+def _chain_graph(
     truth: list[Pose2D],
     drifted: list[Pose2D],
     closures: list[tuple[int, int, Pose2D]],
     params: GraphParams | None = None,
-) -> list[Pose2D]:
+    *,
+    at_node: tuple[int, Callable[[PoseGraph], None]] | None = None,
+) -> PoseGraph:
+    """The drifted chain with heading priors and `closures`, updated once at the end (and
+    handed to `at_node`'s callback after that node, if given)."""
     graph = PoseGraph(params)
     for i, pose in enumerate(drifted):
         graph.add_node(pose)
@@ -207,10 +212,21 @@ def _solve(
             rel = drifted[i - 1].between(pose)
             graph.add_sequential(i - 1, i, rel, np.diag([0.02**2, 0.02**2, math.radians(0.5) ** 2]))
         graph.add_heading_prior(i, truth[i].theta_rad, math.radians(0.3))
+        if at_node is not None and i == at_node[0]:
+            at_node[1](graph)
     for a, b, rel in closures:
         graph.add_loop(a, b, rel, np.diag([0.03**2, 0.03**2, math.radians(0.3) ** 2]))
     graph.update()
-    return graph.optimize_batch()
+    return graph
+
+
+def _solve(
+    truth: list[Pose2D],
+    drifted: list[Pose2D],
+    closures: list[tuple[int, int, Pose2D]],
+    params: GraphParams | None = None,
+) -> list[Pose2D]:
+    return _chain_graph(truth, drifted, closures, params).optimize_batch()
 
 
 def _max_distance(a: list[Pose2D], b: list[Pose2D]) -> float:
@@ -317,30 +333,23 @@ class _FailingOnce:
         return getattr(self._isam, name)
 
 
-def _square_graph(*, fail_at: int | None = None) -> PoseGraph:
-    """`_solve`'s graph, updated at node 100 and at the end; iSAM2 fails once after `fail_at`."""
+def _square_graph(*, fail: bool = False) -> PoseGraph:
+    """The square loop's graph with its closures, updated at node 100 and at the end; with
+    `fail`, the update at the end fails once."""
     truth, drifted = _square_chain(0.01)
-    graph = PoseGraph()
-    for i, pose in enumerate(drifted):
-        graph.add_node(pose)
-        if i:
-            rel = drifted[i - 1].between(pose)
-            graph.add_sequential(i - 1, i, rel, np.diag([0.02**2, 0.02**2, math.radians(0.5) ** 2]))
-        graph.add_heading_prior(i, truth[i].theta_rad, math.radians(0.3))
-        if i == 100:
-            graph.update()
-            if fail_at == i:
-                graph._isam = _FailingOnce(graph._isam)
-    for a in range(0, 80, 10):
-        cov = np.diag([0.03**2, 0.03**2, math.radians(0.3) ** 2])
-        graph.add_loop(a, a + 80, truth[a].between(truth[a + 80]), cov)
-    graph.update()
-    return graph
+    closures = [(a, a + 80, truth[a].between(truth[a + 80])) for a in range(0, 80, 10)]
+
+    def at_100(graph: PoseGraph) -> None:
+        graph.update()
+        if fail:
+            graph._isam = _FailingOnce(graph._isam)
+
+    return _chain_graph(truth, drifted, closures, at_node=(100, at_100))
 
 
 def test_a_failed_isam2_update_is_rebuilt_from_every_factor() -> None:
     clean = _square_graph()
-    graph = _square_graph(fail_at=100)  # the closures' update fails, and is rebuilt
+    graph = _square_graph(fail=True)  # the closures' update fails, and is rebuilt
     assert (clean.isam_restarts, graph.isam_restarts) == (0, 1)
     assert _max_distance(graph.estimates(), clean.estimates()) < 0.01
     assert _max_distance(graph.optimize_batch(), clean.optimize_batch()) < 1e-4
