@@ -114,6 +114,11 @@ class CovarianceTracker:
     along_y: AxisCovariance = field(default_factory=AxisCovariance)
     var_theta: float = 0.0
     frame_rad: float = 0.0  # the axes the matches measure along (the map's, or a wing's)
+    # The heading's variance gathered since the walls last measured it (0 when they did), now
+    # and at the latest keyframe: a heading anchored again on walls measures the keyframe's
+    # drift too, so the motion since that keyframe carries it.
+    drift_var_theta: float = 0.0
+    keyframe_drift_var_theta: float = 0.0
 
     def __post_init__(self) -> None:
         start = self.params.unknown_speed_sigma_m_s**2
@@ -130,7 +135,14 @@ class CovarianceTracker:
         params = values.get("params")
         self.params = params if isinstance(params, CovarianceParams) else CovarianceParams()
         fresh = CovarianceTracker(self.params)
-        for name in ("along_x", "along_y", "var_theta", "frame_rad"):
+        for name in (
+            "along_x",
+            "along_y",
+            "var_theta",
+            "frame_rad",
+            "drift_var_theta",
+            "keyframe_drift_var_theta",
+        ):
             value = values.get(name)
             expected = type(getattr(fresh, name))
             setattr(self, name, value if isinstance(value, expected) else getattr(fresh, name))
@@ -158,6 +170,7 @@ class CovarianceTracker:
         self.along_x.restart()
         self.along_y.restart()
         self.var_theta = 0.0
+        self.keyframe_drift_var_theta = self.drift_var_theta
 
     def update(
         self,
@@ -193,9 +206,13 @@ class CovarianceTracker:
             elif sigma is not None:
                 axis.measure(sigma)
         if heading_anchored:
-            self.var_theta = math.radians(p.anchored_heading_sigma_deg) ** 2
+            anchored_var = math.radians(p.anchored_heading_sigma_deg) ** 2
+            self.var_theta = anchored_var + self.keyframe_drift_var_theta
+            self.drift_var_theta = 0.0
         else:
-            self.var_theta += math.radians(p.relative_heading_sigma_deg) ** 2
+            relative_var = math.radians(p.relative_heading_sigma_deg) ** 2
+            self.var_theta += relative_var
+            self.drift_var_theta += relative_var
         return self.covariance()
 
     def covariance(self) -> Covariance3:

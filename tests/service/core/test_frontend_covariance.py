@@ -68,3 +68,28 @@ def test_the_tracker_is_pickled_by_name() -> None:
     old.__setstate__((None, {"var_x": 0.1, "var_y": 0.2, "var_theta": 0.0, "frame_rad": 0.0}))
     assert old.covariance()[0] == 0.0
     assert old.along_x.speed_var_m2_s2 == pytest.approx(1.0)
+
+
+def test_a_heading_anchored_again_carries_the_drift_of_its_keyframe() -> None:
+    """A keyframe taken after 40 scans without walls has drifted by their relative heading
+    errors; the walls measuring the heading again correct that drift, so the motion since the
+    keyframe carries it. A keyframe on walls adds nothing to the anchored heading's σ."""
+    p = CovarianceParams()
+    anchored_var = math.radians(p.anchored_heading_sigma_deg) ** 2
+    relative_var = math.radians(p.relative_heading_sigma_deg) ** 2
+    tracker = CovarianceTracker()
+    tracker.update(0.01, 0.01, True, dt_s=0.1)
+    tracker.restart()
+    assert tracker.update(0.01, 0.01, True, dt_s=0.1)[8] == pytest.approx(anchored_var)
+    for _ in range(40):
+        tracker.update(0.01, 0.01, False, dt_s=0.1)
+    tracker.restart()
+    relative = tracker.update(0.01, 0.01, False, dt_s=0.1)[8]
+    assert relative == pytest.approx(relative_var)  # the keyframe's drift cancels
+    tracker.restart()
+    again = tracker.update(0.01, 0.01, True, dt_s=0.1)[8]
+    assert again == pytest.approx(anchored_var + 41 * relative_var)
+    tracker.restart()
+    assert tracker.update(0.01, 0.01, True, dt_s=0.1)[8] == pytest.approx(anchored_var)
+    back = pickle.loads(pickle.dumps(tracker))
+    assert back.drift_var_theta == tracker.drift_var_theta
