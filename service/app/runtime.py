@@ -39,6 +39,7 @@ from service.app.settings import ServiceSettings, is_loopback_host
 from service.app.store import DataDir, MapStore
 
 if TYPE_CHECKING:
+    from service.app.backend import GraphSnapshot
     from service.app.foxglove import FoxgloveView
 
 log = logging.getLogger(__name__)
@@ -413,28 +414,26 @@ class MappingRuntime:
                 out.append((labels(session=session.id), float(value)))
         return out
 
-    def _loop_gauge(self, *, accepted: bool) -> list[tuple[Labels, float]]:
-        out: list[tuple[Labels, float]] = []
-        for session in self.sessions.list():
-            snap = session.graph_counts()
-            if snap is None or not snap.nodes:
-                continue
-            if accepted:
-                out.append((labels(session=session.id), float(snap.accepted)))
-            else:
-                out.extend(
-                    (labels(session=session.id, reason=reason), float(n))
-                    for reason, n in sorted(snap.rejected.items())
-                )
-        return out
-
-    def _solver_restart_gauge(self) -> list[tuple[Labels, float]]:
-        out: list[tuple[Labels, float]] = []
+    def _graphs(self) -> list[tuple[str, GraphSnapshot]]:
+        """Each session with a pose graph of at least one node, and that graph's counts."""
+        out: list[tuple[str, GraphSnapshot]] = []
         for session in self.sessions.list():
             snap = session.graph_counts()
             if snap is not None and snap.nodes:
-                out.append((labels(session=session.id), float(snap.solver_restarts)))
+                out.append((session.id, snap))
         return out
+
+    def _loop_gauge(self, *, accepted: bool) -> list[tuple[Labels, float]]:
+        if accepted:
+            return [(labels(session=sid), float(snap.accepted)) for sid, snap in self._graphs()]
+        return [
+            (labels(session=sid, reason=reason), float(n))
+            for sid, snap in self._graphs()
+            for reason, n in sorted(snap.rejected.items())
+        ]
+
+    def _solver_restart_gauge(self) -> list[tuple[Labels, float]]:
+        return [(labels(session=sid), float(snap.solver_restarts)) for sid, snap in self._graphs()]
 
     def _session_gauge(self) -> list[tuple[Labels, float]]:
         counts = {"active": 0, "stopped": 0}
