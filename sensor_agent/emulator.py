@@ -140,6 +140,7 @@ class _Stream:
     cluster: int
     interval: int
     remaining: int | None  # None = unlimited
+    first_index: int  # the first scan whose step 0 comes after the command
     skip_left: int = 0
     laser_was_off: bool = False
 
@@ -288,7 +289,7 @@ class Utm30lxDevice:
             return self._tm(line, body[2:3], now_s)
         if name == b"GD":
             return self._gd(line, body, now_s)
-        return self._start_stream(line, body, tagged)
+        return self._start_stream(line, body, tagged, now_s)
 
     def _stop(self) -> None:
         self._stream = None
@@ -341,7 +342,7 @@ class Utm30lxDevice:
         ts = self.timestamp_at(self._scan_start_s(index))
         return self._reply(line, "00", _scan_lines(ts, ranges, intens))
 
-    def _start_stream(self, line: bytes, body: bytes, tagged: bytes) -> bytes:
+    def _start_stream(self, line: bytes, body: bytes, tagged: bytes, now_s: float) -> bytes:
         status, v = self._scan_params(body, stream=True)
         if status != "00":
             return self._reply(line, status)
@@ -355,6 +356,9 @@ class Utm30lxDevice:
             cluster=max(1, cluster),
             interval=interval,
             remaining=nscans if nscans > 0 else None,
+            # A scan already under way was measured before the request (and before an RS that
+            # came with it, which would stamp two scans 0 ms): the stream starts with the next.
+            first_index=math.ceil((now_s - self._t0_s) / UTM_SCAN_PERIOD_S - 1e-9),
             laser_was_off=not self.laser_on,
         )
         self.laser_on = True  # MD/ME switch the laser on by themselves
@@ -378,7 +382,7 @@ class Utm30lxDevice:
 
     def _stream_scan(self, index: int) -> ScanFrame | None:
         s = self._stream
-        if s is None:
+        if s is None or index < s.first_index:
             return None
         if s.skip_left > 0:
             s.skip_left -= 1

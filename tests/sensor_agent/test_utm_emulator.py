@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import subprocess
 import sys
@@ -219,6 +220,23 @@ def test_rs_resets_the_timestamp() -> None:
     b.ask(c.md(540, 540))
     scans = [e for e in b.advance(0.1) if isinstance(e, ScanData)]
     assert scans[0].timestamp_raw_ms < 100
+
+
+@pytest.mark.parametrize("before_boundary_s", [0.0005, 0.0124, 0.0249])
+def test_a_stream_after_rs_never_stamps_two_scans_alike(before_boundary_s: float) -> None:
+    """The scan under way at RS + MD began before the reset; streaming it would stamp it 0 ms,
+    and the next scan too when the reset came within 1 ms of its start (CI failed on that:
+    the agent saw one stamp twice). A stream starts with the first scan after the command."""
+    b = Bench()
+    b.now += 5.0 + PERIOD - before_boundary_s  # scans start at 100 s + k * PERIOD
+    b.device.tick(b.now)
+    b.ask(c.rs())
+    b.ask(c.md(540, 540))
+    scans = [e for _ in range(8) for e in b.advance(PERIOD) if isinstance(e, ScanData)]
+    stamps = [s.timestamp_ms for s in scans]
+    assert len(stamps) >= 6
+    assert stamps[0] == math.floor(before_boundary_s * 1000.0 + 1e-6)
+    assert np.all(np.diff(stamps) == 25), stamps
 
 
 def test_cluster_minimum_skips_error_codes() -> None:
