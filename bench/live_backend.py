@@ -84,15 +84,35 @@ def loop_scans(seed: int = 1, speed_mps: float = 2.0) -> list[Any]:
     return out
 
 
-def fleet_run(
-    loop_closure: bool, robots: int, work_dir: Path, warmup_s: float, measure_s: float
+def fleet_run(  # noqa: PLR0917 - one benchmark point's settings
+    loop_closure: bool,
+    robots: int,
+    work_dir: Path,
+    warmup_s: float,
+    measure_s: float,
+    mapper_processes: int = 0,
 ) -> dict[str, Any]:
     from bench.scale import ScaleConfig, run_point
 
-    cfg = ScaleConfig(robots, "loadgen", 0, warmup_s, measure_s, loop_closure=loop_closure)
-    point = run_point(cfg, work_dir / ("lc-on" if loop_closure else "lc-off"))
-    keys = ("scans_published", "dropped", "latency_p50_ms", "latency_p99_ms", "loop_closures")
-    return {"loop_closure": loop_closure, **{k: point.get(k) for k in keys}}
+    cfg = ScaleConfig(
+        robots, "loadgen", mapper_processes, warmup_s, measure_s, loop_closure=loop_closure
+    )
+    name = f"{'lc-on' if loop_closure else 'lc-off'}-k{mapper_processes}"
+    point = run_point(cfg, work_dir / name)
+    keys = (
+        "scans_published",
+        "dropped",
+        "latency_p50_ms",
+        "latency_p99_ms",
+        "loop_closures",
+        "service_cpu_pct",
+        "machine_busy_pct",
+    )
+    return {
+        "loop_closure": loop_closure,
+        "mapper_processes": mapper_processes,
+        **{k: point.get(k) for k in keys},
+    }
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -105,6 +125,12 @@ def main(argv: list[str] | None = None) -> int:
         type=float,
         default=40.0,
         help="before measuring: the robots' graphs need ~60 nodes before the search starts",
+    )
+    parser.add_argument(
+        "--mapper-processes",
+        type=int,
+        default=0,
+        help="the service's --mapper-processes for the fleet part (0: estimators in its process)",
     )
     parser.add_argument("--pairs", type=int, default=3, help="front-end runs off/on, alternated")
     parser.add_argument("--skip-fleet", action="store_true", help="the front-end part only")
@@ -126,7 +152,14 @@ def main(argv: list[str] | None = None) -> int:
         out.write_text(json.dumps(result, indent=2) + "\n")  # kept if the fleet part fails
     if not args.skip_fleet:
         result["fleet"] = [
-            fleet_run(on, args.robots, args.out / "live_backend", args.warmup_s, args.measure_s)
+            fleet_run(
+                on,
+                args.robots,
+                args.out / "live_backend",
+                args.warmup_s,
+                args.measure_s,
+                args.mapper_processes,
+            )
             for on in (False, True)
         ]
         for r in result["fleet"]:

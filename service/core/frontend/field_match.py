@@ -117,35 +117,10 @@ def local_field(
     prior = float(base.fine[known].mean()) if known.any() else 0.0
     # Unknown cells read the prior straight from `fine` (what `axis_response` interpolates).
     fine = np.where(known, base.fine, np.float32(prior)).astype(np.float32)
-    # Only `fine` is read (`_bilinear`): the mask is not kept (memory: a 30 m reach is a
-    # 1,200-cell square), and the coarse bound was never built.
+    # Only `fine` is read (`LikelihoodField.interpolate`): the mask is not kept (memory: a 30 m
+    # reach is a 1,200-cell square), and the coarse bound was never built.
     empty = np.zeros((0, 0), dtype=np.float32)
     return replace(base, fine=fine, known=empty, unknown_value=prior)
-
-
-def _bilinear(field: LikelihoodField, xy_m: FloatArray) -> FloatArray:
-    """`local_field` values at (..., 2) points, interpolated between cell centres; outside the
-    grid, the field's prior."""
-    grid = field.fine
-    h, w = grid.shape
-    u = (xy_m[..., 0] - field.origin_m[0]) / field.resolution_m - 0.5
-    v = (xy_m[..., 1] - field.origin_m[1]) / field.resolution_m - 0.5
-    j0 = np.floor(u)
-    i0 = np.floor(v)
-    fu = u - j0
-    fv = v - i0
-    j0i = j0.astype(np.int64)
-    i0i = i0.astype(np.int64)
-    inside = (i0i >= 0) & (i0i < h - 1) & (j0i >= 0) & (j0i < w - 1)
-    out = np.full(u.shape, float(field.unknown_value))
-    ii, jj, a, b = i0i[inside], j0i[inside], fu[inside], fv[inside]
-    out[inside] = (
-        grid[ii, jj] * (1 - a) * (1 - b)
-        + grid[ii, jj + 1] * a * (1 - b)
-        + grid[ii + 1, jj] * (1 - a) * b
-        + grid[ii + 1, jj + 1] * a * b
-    )
-    return out
 
 
 def axis_response(
@@ -171,7 +146,7 @@ def axis_response(
     shifts = params.step_m * np.arange(-n_half, n_half + 1, dtype=np.float64)
     moved = np.repeat(points_map_m[None, :, :], shifts.shape[0], axis=0)
     moved[:, :, axis] += shifts[:, None]
-    score = _bilinear(field, moved).sum(axis=1)
+    score = field.interpolate(moved).sum(axis=1)
     log_w = score / params.temperature_points - 0.5 * (shifts / prior_sigma_m) ** 2
     w = np.exp(log_w - log_w.max())
     w /= w.sum()

@@ -82,6 +82,30 @@ class LikelihoodField:
         for name in self.__slots__:
             object.__setattr__(self, name, values[name])
 
+    def interpolate(self, xy_m: FloatArray) -> FloatArray:
+        """Fine field values at (..., 2) points, interpolated between cell centres; outside the
+        grid, the field's prior (sub-cell matches: the front end's 2-D search, a closure's peak)."""
+        grid = self.fine
+        h, w = grid.shape
+        u = (xy_m[..., 0] - self.origin_m[0]) / self.resolution_m - 0.5
+        v = (xy_m[..., 1] - self.origin_m[1]) / self.resolution_m - 0.5
+        j0 = np.floor(u)
+        i0 = np.floor(v)
+        fu = u - j0
+        fv = v - i0
+        j0i = j0.astype(np.int64)
+        i0i = i0.astype(np.int64)
+        inside = (i0i >= 0) & (i0i < h - 1) & (j0i >= 0) & (j0i < w - 1)
+        out = np.full(u.shape, float(self.unknown_value))
+        ii, jj, a, b = i0i[inside], j0i[inside], fu[inside], fv[inside]
+        out[inside] = (
+            grid[ii, jj] * (1 - a) * (1 - b)
+            + grid[ii, jj + 1] * a * (1 - b)
+            + grid[ii + 1, jj] * (1 - a) * b
+            + grid[ii + 1, jj + 1] * a * b
+        )
+        return out
+
     def lookup(self, xy_m: FloatArray, coarse: bool = False, known: bool = False) -> F32Array:
         """Field (or known-mask) values at (..., 2) points; 0 outside the grid."""
         grid = self.known if known else self.coarse if coarse else self.fine

@@ -41,6 +41,7 @@ from service.app.api.app import create_app
 from service.app.foxglove import session_loop_closures
 from service.app.runtime import MappingRuntime
 from service.app.settings import IngestSettings, ServiceSettings, StorageSettings
+from service.core.backend.graph import GraphParams
 
 SEED = 1
 SPEED_MPS = 2.0  # one loop in ~46 s of scans (1,830): the closure comes back at the start
@@ -388,7 +389,11 @@ def test_live_loop_closure_real_processes(tmp_path: Path) -> None:
         svc.start()
         third = wait_for(restored, 30, "the graph from the checkpoint")
         after = np.array([(n["x"], n["y"]) for n in third["nodes"]])
-        assert np.abs(after - before).max() < 1e-4
+        # The same factors, relinearised at the saved estimate: one Gauss-Newton step from
+        # there, which the live iSAM2 (relinearising only variables that moved more than
+        # `GraphParams.relinearize_threshold`, 1 cm) need not have taken. Closures off the
+        # guess by millimetres (refined peaks) move it by that much (2.6 mm measured).
+        assert np.abs(after - before).max() < GraphParams().relinearize_threshold
         assert third["loop_closures"]["accepted"] == graph["loop_closures"]["accepted"]  # type: ignore[index]
     finally:
         svc.stop()
