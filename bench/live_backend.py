@@ -5,7 +5,8 @@
    (the closures come back at the start), off / on / off / on, median and p99 of `map_scan`.
 2. scan→pose with 10 robots (`bench.scale.run_point`, the load generator driving each robot back
    and forth over the same path, so closures are searched all the time): p50/p99 and drops,
-   `serve --no-loop-closure` against `serve`, with the closures searched and accepted.
+   `serve --no-loop-closure` against `serve`, with the closures searched and accepted; with
+   `--mapper-processes K`, the service runs its estimators and back ends in K processes.
 
 Writes bench/out/live_backend.json and prints a summary. A benchmark, not a test: the numbers
 depend on the machine and what else runs on it.
