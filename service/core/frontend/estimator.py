@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+import statistics
 from collections import deque
 from dataclasses import dataclass, field
 from itertools import islice, product
@@ -438,7 +439,7 @@ class ManhattanEstimator:
             return 0.0
         dt = (scan.stamp_ns - self._stamp_ns) * 1e-9
         if len(self._periods_s) >= 5 and p.period_clip_ratio > 1.0:
-            typical = float(np.median(self._periods_s))
+            typical = statistics.median(self._periods_s)  # np.median's value, bit for bit
             dt = min(max(dt, typical / p.period_clip_ratio), typical * p.period_clip_ratio)
         return dt
 
