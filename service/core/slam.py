@@ -199,6 +199,12 @@ class SlamBackend:
     def finish(self) -> list[Pose2D]:
         """Final batch optimisation (offline); returns the optimised nodes."""
         if self.node_frontend:
+            last = self.node_count - 1
+            if self.params.loop_closure and last % self.params.loops.search_every_nodes:
+                # The run's last node, nearest its start on a loop: its last chance to close.
+                t1 = time.perf_counter()
+                self._search(last)
+                self.stats.search_s += time.perf_counter() - t1
             t0 = time.perf_counter()
             self._optimised = self.graph.optimize_batch()
             self.stats.optimise_s += time.perf_counter() - t0

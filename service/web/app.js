@@ -69,6 +69,8 @@
   const state = {
     closures: [], // accepted loop closures: [[x0, y0], [x1, y1]] at the optimised poses
     closuresKey: null, // "session:accepted" of the trajectory loaded last
+    graphRevision: null, // the graph's revision when the trajectory was last loaded for it
+    nextGraphReloadAt: 0, // performance.now() before which the graph's moves wait
     sessions: [],
     sessionId: null,
     session: null,
@@ -257,6 +259,7 @@
     state.nextMapAt = 0;
     state.closures = [];
     state.closuresKey = null;
+    state.graphRevision = null;
     state.traj = [];
     state.trajLoaded = false;
     state.lastSeq = -1;
@@ -427,8 +430,9 @@
     return r.json();
   }
 
+  // Resolves true when it loaded the trajectory (false: a load was already running, or failed).
   async function loadTrajectory(id) {
-    if (state.trajLoading) return;
+    if (state.trajLoading) return false;
     state.trajLoading = true;
     try {
       let body = await trajectoryPage(id, 0, 1);
@@ -438,7 +442,7 @@
       const pts = [];
       let last = -1;
       for (;;) {
-        if (state.sessionId !== id) return;
+        if (state.sessionId !== id) return false;
         for (const p of body.poses || []) {
           pushPoint(pts, p.x, p.y, p.sequence);
           last = Math.max(last, p.sequence);
@@ -446,15 +450,17 @@
         if (body.next_seq === null || body.next_seq === undefined) break;
         body = await trajectoryPage(id, body.next_seq, every);
       }
-      if (state.sessionId !== id) return;
+      if (state.sessionId !== id) return false;
       // Poses that arrived on the stream while the trajectory was loading go after it.
       for (const [x, y, seq] of state.traj) if (seq > last) pushPoint(pts, x, y, seq);
       state.traj = pts;
       state.trajLoaded = true;
       state.lastSeq = Math.max(state.lastSeq, last);
       state.dirty = true;
+      return true;
     } catch (err) {
       /* a fresh or restoring session has no trajectory yet: loaded again at the next pose */
+      return false;
     } finally {
       state.trajLoading = false;
     }
@@ -624,7 +630,24 @@
     const accepted = (g.closures || []).filter((c) => c.accepted);
     state.closures = accepted.map((c) => [[c.from_x, c.from_y], [c.to_x, c.to_y]]);
     const key = `${id}:${g.loop_closures ? g.loop_closures.accepted : 0}`;
-    if (state.closuresKey !== null && state.closuresKey !== key) loadTrajectory(id);
+    // The graph also moves the poses after a closure (later nodes relax it): at a new
+    // revision, once its queue is empty, the trajectory is loaded again, at most every 10 s.
+    const now = performance.now();
+    const settled = g.loop_closures && g.loop_closures.pending === 0;
+    const moved = settled && state.graphRevision !== g.revision && now >= state.nextGraphReloadAt;
+    const closed = state.closuresKey !== null && state.closuresKey !== key;
+    if (closed || (moved && state.closuresKey !== null)) {
+      const revision = g.revision;
+      state.graphRevision = revision;
+      state.nextGraphReloadAt = now + 10_000;
+      loadTrajectory(id).then((loaded) => {
+        if (!loaded) Object.assign(state, { graphRevision: -1, nextGraphReloadAt: 0 }); // again
+        else if (state.graphRevision === revision) document.body.dataset.graphRevision = revision;
+      });
+    } else if (state.graphRevision === null) {
+      state.graphRevision = g.revision;
+      document.body.dataset.graphRevision = String(g.revision);
+    }
     state.closuresKey = key;
     document.body.dataset.loopClosures = String(accepted.length);
     state.dirty = true;

@@ -410,6 +410,12 @@ def test_live_map_page(
             30,
             "the page to show the last pose",
         )
+        # The graph moves the poses after its last closure too: the page loads the trajectory
+        # again once the graph has settled at a new revision.
+        revision = service.json(f"/sessions/{session.id}/graph?nodes=false")["revision"]
+        page.wait_for_function(
+            f"document.body.dataset.graphRevision === '{revision}'", timeout=30_000
+        )
         page.evaluate(  # two frames: the page draws on requestAnimationFrame
             "() => new Promise(r => requestAnimationFrame(() => requestAnimationFrame(r)))"
         )
