@@ -642,7 +642,7 @@
       state.nextGraphReloadAt = now + 10_000;
       loadTrajectory(id).then((loaded) => {
         if (!loaded) Object.assign(state, { graphRevision: -1, nextGraphReloadAt: 0 }); // again
-        else if (state.graphRevision === revision) document.body.dataset.graphRevision = revision;
+        else if (state.graphRevision === revision) document.body.dataset.graphRevision = String(revision);
       });
     } else if (state.graphRevision === null) {
       state.graphRevision = g.revision;

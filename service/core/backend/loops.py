@@ -97,6 +97,24 @@ class LoopResult:
     correction_m: float = 0.0  # how far the closure moves the query from the graph's guess
 
 
+def _shifted_cells(
+    field: LikelihoodField, pts: FloatArray, xs: FloatArray, ys: FloatArray
+) -> tuple[npt.NDArray[np.int64], BoolArray]:
+    """(ny, nx, n) flat cell index of every point shifted by every (x, y), clipped to the grid,
+    and whether it fell inside (`take` on the raveled grids: faster than 2-D indexing)."""
+    h, w = field.fine.shape
+    res = field.resolution_m
+    # Cell indices separate: column = floor((px + x - ox) / res), row likewise.
+    cols = np.floor((pts[:, 0][None, :] + xs[:, None] - field.origin_m[0]) / res).astype(np.int64)
+    rows = np.floor((pts[:, 1][None, :] + ys[:, None] - field.origin_m[1]) / res).astype(np.int64)
+    col_ok = (cols >= 0) & (cols < w)
+    row_ok = (rows >= 0) & (rows < h)
+    cols = np.clip(cols, 0, w - 1)
+    rows = np.clip(rows, 0, h - 1)
+    inside: BoolArray = row_ok[:, None, :] & col_ok[None, :, :]
+    return rows[:, None, :] * w + cols[None, :, :], inside
+
+
 def _scores(  # noqa: PLR0917 - the field, the points and the shifts to score them at
     field: LikelihoodField,
     pts: FloatArray,
@@ -113,20 +131,9 @@ def _scores(  # noqa: PLR0917 - the field, the points and the shifts to score th
     the prior everywhere), a bound of every fine score in the block.
     """
     grid = field.coarse if coarse else field.fine
-    h, w = grid.shape
     n = pts.shape[0]
-    res = field.resolution_m
-    # Cell indices separate: column = floor((px + x - ox) / res), row likewise.
-    cols = np.floor((pts[:, 0][None, :] + xs[:, None] - field.origin_m[0]) / res).astype(np.int64)
-    rows = np.floor((pts[:, 1][None, :] + ys[:, None] - field.origin_m[1]) / res).astype(np.int64)
-    col_ok = (cols >= 0) & (cols < w)
-    row_ok = (rows >= 0) & (rows < h)
-    cols = np.clip(cols, 0, w - 1)
-    rows = np.clip(rows, 0, h - 1)
-    inside = row_ok[:, None, :] & col_ok[None, :, :]
+    cells, inside = _shifted_cells(field, pts, xs, ys)  # (ny, nx, n)
     u = field.unknown_value
-    # One flat index for both gathers (`take` on the raveled grids: faster than 2-D indexing).
-    cells = rows[:, None, :] * w + cols[None, :, :]  # (ny, nx, n)
     if coarse:
         vals = np.where(inside, grid.ravel().take(cells), u)
         out: FloatArray = vals.sum(axis=2, dtype=np.float64) / n
@@ -209,16 +216,9 @@ def place_scan(
 
 def _known_at_every_shift(field: LikelihoodField, pts: FloatArray, d: FloatArray) -> BoolArray:
     """(n,): the points that lie in the submap's observed space at every shift (x, y) in d × d."""
-    res = field.resolution_m
-    h, w = field.known.shape
-    cols = np.floor((pts[:, 0][None, :] + d[:, None] - field.origin_m[0]) / res).astype(np.int64)
-    rows = np.floor((pts[:, 1][None, :] + d[:, None] - field.origin_m[1]) / res).astype(np.int64)
-    col_ok = ((cols >= 0) & (cols < w)).all(axis=0)
-    row_ok = ((rows >= 0) & (rows < h)).all(axis=0)
-    cols = np.clip(cols, 0, w - 1)
-    rows = np.clip(rows, 0, h - 1)
-    known = field.known.ravel().take(rows[:, None, :] * w + cols[None, :, :]) > 0.5
-    out: BoolArray = known.all(axis=(0, 1)) & col_ok & row_ok
+    cells, inside = _shifted_cells(field, pts, d, d)
+    known: BoolArray = (field.known.ravel().take(cells) > 0.5) & inside
+    out: BoolArray = np.all(known, axis=(0, 1))
     return out
 
 
@@ -241,10 +241,10 @@ def refine_peak(field: LikelihoodField, placement: Placement, params: LoopParams
     measures the fit alone, read between cell centres. The window (`refine_half_m`) is just
     wider than a wall's band of observed cells (the field's bumps), so that a point beyond a
     wall's last hit, in the bump's tail, leaves the set; the set is chosen around the current
-    peak, so the search moves to
-    the best shift and searches again until it stays. None: still moving after `refine_moves`,
-    or farther than the window from the placement (a ridge, or a peak the placement did not
-    find). With fewer than `min_points` such points the placement's own peak stays.
+    peak, so the search moves to the best shift and searches again until it stays. None: still
+    moving after `refine_moves`, or farther than the window from the placement (a ridge, or a
+    peak the placement did not find). With fewer than `min_points` such points the
+    placement's own peak stays.
     """
     n, half_m = params.refine_cells, params.refine_half_m
     d = np.linspace(-half_m, half_m, 2 * n + 1)
