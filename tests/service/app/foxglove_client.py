@@ -46,13 +46,13 @@ async def receive_topics(url: str, topics: set[str], timeout_s: float) -> dict[s
     got: dict[str, Received] = {}
     async with websockets.connect(url, subprotocols=[SUBPROTOCOL]) as ws:  # type: ignore[list-item]
         while len(got) < len(topics):
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            try:
+                frame = await asyncio.wait_for(ws.recv(), max(0.0, deadline - time.monotonic()))
+            except TimeoutError:
                 raise TimeoutError(
-                    f"got {sorted(got)} of {sorted(topics)}; advertised "
+                    f"after {timeout_s:g} s: got {sorted(got)} of {sorted(topics)}; advertised "
                     f"{sorted(c['topic'] for c in channels.values())}"
-                )
-            frame = await asyncio.wait_for(ws.recv(), remaining)
+                ) from None
             if isinstance(frame, str):
                 msg = json.loads(frame)
                 if msg["op"] == "advertise":
