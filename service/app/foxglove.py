@@ -100,9 +100,8 @@ class _Session(Protocol):
 
 
 SessionsSource = Callable[[], Iterable[_Session]]
-# Loop closures of a session as pairs of (x_m, y_m) points in the map frame. The lead's pose
-# graph may expose them as `session.loop_closures()` (or `GET /sessions/{id}/graph`); until
-# then the default finds none.
+# Loop closures of a session as pairs of (x_m, y_m) points in the map frame: by default the
+# session's `loop_closures()` (none for a source without it, as tests may pass).
 LoopClosureSource = Callable[[_Session], Sequence[tuple[tuple[float, float], tuple[float, float]]]]
 
 
