@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import sys
 import threading
 import time
 from collections import deque
@@ -38,6 +40,10 @@ log = logging.getLogger(__name__)
 VIEW_PERIOD_S: Final = 0.5  # graph snapshots, at most this often (and after every closure)
 RENDER_PERIOD_S: Final = 1.0  # the composed map, at most this often
 RECENT_REJECTED: Final = 100  # refused searches shown in a snapshot
+# The back end's thread runs this much nicer than the pose path (Linux, where a thread has its
+# own nice value): on cores the front end also needs, the back end falls behind (its queue,
+# `pending`, grows) and the 40 Hz poses do not.
+BACKEND_NICE: Final = 10
 
 # A node waiting for the back end: (scan, front-end pose, covariance (9), flags, pose sequence).
 NodeItem = tuple[LaserScan, Pose2D, tuple[float, ...], int, int]
@@ -146,6 +152,7 @@ class BackendScheduler:
                 self._thread.start()
 
     def _run(self) -> None:
+        _lower_thread_priority(BACKEND_NICE)
         while True:
             with self._lock:
                 while not self._ready:
@@ -162,6 +169,19 @@ class BackendScheduler:
                     self._ready.append(backend)
                 else:
                     backend.scheduled = False
+
+
+def _lower_thread_priority(increment: int) -> None:
+    """This thread's nice value raised by `increment` (Linux only: elsewhere a thread id is
+    not a process id, and `setpriority` would reach another process)."""
+    if not sys.platform.startswith("linux"):
+        return
+    tid = threading.get_native_id()
+    try:
+        nice = os.getpriority(os.PRIO_PROCESS, tid)
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, nice + increment))
+    except OSError as err:  # a sandbox without setpriority: the back end runs at the same priority
+        log.warning("back end thread keeps the pose path's priority: %s", err)
 
 
 _SCHEDULER = BackendScheduler()
