@@ -37,6 +37,11 @@ FORMAT: Final = 1
 _NEWOBJ: Final = getattr(copyreg, "__newobj__")  # noqa: B009  # untyped in typeshed
 _TREE = "tree.json"
 _ALLOWED_DTYPE_KINDS: Final = "biufcmM"  # numbers, booleans, timestamps: never objects
+# Deflate's fastest level: a checkpoint is encoded on the session's path (a mapper process
+# blocks its sessions meanwhile), and its arrays are mostly the map chunks' unknown cells. A
+# 415 m loop's state with loop closure (84 MB of arrays): level 6 908 ms, 10.3 MB; level 1
+# 561 ms, 11.1 MB. Decoding does not depend on the level.
+COMPRESS_LEVEL: Final = 1
 
 
 class StateCodecError(ValueError):
@@ -241,7 +246,8 @@ def encode(obj: object, allowed_modules: Iterable[str]) -> bytes:
         raise StateCodecError("object graph too deep") from err
     buf = io.BytesIO()
     arrays = {f"a{i}": a for i, a in enumerate(encoder.arrays)}
-    with zipfile.ZipFile(buf, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=6) as zf:
+    deflate = zipfile.ZIP_DEFLATED
+    with zipfile.ZipFile(buf, "w", compression=deflate, compresslevel=COMPRESS_LEVEL) as zf:
         zf.writestr(_TREE, json.dumps(tree, separators=(",", ":")))
         for name, array in arrays.items():
             with zf.open(name + ".npy", "w", force_zip64=True) as f:
