@@ -117,6 +117,14 @@ def restore_fields(obj: Any, values: Mapping[str, object], defaults: Any) -> Non
         object.__setattr__(obj, f.name, values.get(f.name, getattr(defaults, f.name)))
 
 
+def parabolic_offset(y_minus: float, y0: float, y_plus: float) -> float:
+    """Vertex of the parabola through three equally spaced samples, in steps, within ±0.5."""
+    denom = y_minus - 2.0 * y0 + y_plus
+    if denom >= 0.0:
+        return 0.0
+    return min(max(0.5 * (y_minus - y_plus) / denom, -0.5), 0.5)
+
+
 def wrap_angle(theta_rad: float) -> float:
     """Wrap to [-π, π)."""
     return (theta_rad + math.pi) % (2.0 * math.pi) - math.pi

@@ -33,6 +33,7 @@ from service.core.types import (
     Pose2D,
     largest_eigenvalue_2x2,
     mahalanobis_sq_2x2,
+    parabolic_offset,
     rotate_points,
 )
 
@@ -222,14 +223,6 @@ def _known_at_every_shift(field: LikelihoodField, pts: FloatArray, d: FloatArray
     return out
 
 
-def _parabolic_offset(left: float, mid: float, right: float) -> float:
-    """Sub-step offset of a sampled peak (-0.5 .. 0.5 steps), 0 where it is not a peak."""
-    curvature = left - 2.0 * mid + right
-    if curvature >= 0.0:
-        return 0.0
-    return min(max(0.5 * (left - right) / curvature, -0.5), 0.5)
-
-
 def refine_peak(field: LikelihoodField, placement: Placement, params: LoopParams) -> Pose2D | None:
     """The placement's peak, scored on the query points that lie in observed space at every
     shift of a small window around it; None where there is no peak near the placement.
@@ -261,8 +254,8 @@ def refine_peak(field: LikelihoodField, placement: Placement, params: LoopParams
         iy, ix = np.unravel_index(int(np.argmax(scores)), scores.shape)
         if abs(ix - n) <= 1 and abs(iy - n) <= 1:  # the peak stays: refine it between steps
             top = float(scores[iy, ix])
-            px = d[ix] + step * _parabolic_offset(scores[iy, ix - 1], top, scores[iy, ix + 1])
-            py = d[iy] + step * _parabolic_offset(scores[iy - 1, ix], top, scores[iy + 1, ix])
+            px = d[ix] + step * parabolic_offset(scores[iy, ix - 1], top, scores[iy, ix + 1])
+            py = d[iy] + step * parabolic_offset(scores[iy - 1, ix], top, scores[iy + 1, ix])
             return Pose2D(x_m + float(px), y_m + float(py), placement.pose.theta_rad)
         x_m, y_m = x_m + float(d[ix]), y_m + float(d[iy])
         moved_m = math.hypot(x_m - placement.pose.x_m, y_m - placement.pose.y_m)

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from service.core.types import FloatArray
+from service.core.types import FloatArray, parabolic_offset
 
 QUARTER = math.pi / 2.0
 
@@ -192,14 +192,6 @@ def heading_scores(
         return np.asarray(per_row[:k] + per_row[k:], dtype=np.float64)
     sqi = np.einsum("ij,ij->i", hi, hi)
     return np.asarray(sqi[:k] + sqi[k:], dtype=np.float64)
-
-
-def parabolic_offset(y_minus: float, y0: float, y_plus: float) -> float:
-    """Vertex of the parabola through three equally spaced samples, in steps, within ±0.5."""
-    denom = y_minus - 2.0 * y0 + y_plus
-    if denom >= 0.0:
-        return 0.0
-    return min(max(0.5 * (y_minus - y_plus) / denom, -0.5), 0.5)
 
 
 @dataclass(frozen=True, slots=True)

@@ -15,8 +15,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from service.core.frontend.heading import parabolic_offset
-from service.core.types import FloatArray, convolve_valid
+from service.core.types import FloatArray, convolve_valid, parabolic_offset
 
 _BIN_RAD = math.radians(0.5)
 _N_BINS = round(math.pi / _BIN_RAD)

@@ -21,8 +21,7 @@ import numpy as np
 import numpy.typing as npt
 from numpy.lib.stride_tricks import as_strided
 
-from service.core.frontend.heading import parabolic_offset
-from service.core.types import FloatArray
+from service.core.types import FloatArray, parabolic_offset
 
 
 def orientation_weights(
