@@ -119,13 +119,19 @@ def test_loop_closure_in_process(runtime: MappingRuntime) -> None:
         before_png = client.get(f"/sessions/{sid}/map.pgm").content
         revision = graph["revision"]
         _pull_last_node(runtime, sid, 0.3)
-        graph = wait_for(
-            lambda: (g := client.get(f"/sessions/{sid}/graph").json())["revision"] > revision and g,
-            10,
-            "the graph after the closure",
-        )
+
+        def after_closure() -> tuple[dict[str, Any], dict[int, Any]] | None:
+            # The graph and the trajectory are two reads: the pair counts only if no newer
+            # graph was published between them (a loaded machine relaxes it in between).
+            g = client.get(f"/sessions/{sid}/graph").json()
+            if g["revision"] <= revision:
+                return None
+            served = {p["sequence"]: p for p in _all_poses(lambda u: client.get(u).json(), sid)}
+            same = client.get(f"/sessions/{sid}/graph?nodes=false").json()["revision"]
+            return (g, served) if same == g["revision"] else None
+
+        graph, poses = wait_for(after_closure, 10, "the graph after the closure")
         nodes = graph["nodes"]
-        poses = {p["sequence"]: p for p in _all_poses(lambda u: client.get(u).json(), sid)}
         moved = 0.0
         for n in nodes:  # every node's scan, as served, sits where the graph put its node
             p = poses[n["sequence"]]
