@@ -120,17 +120,18 @@ def test_loop_closure_in_process(runtime: MappingRuntime) -> None:
         revision = graph["revision"]
         _pull_last_node(runtime, sid, 0.3)
 
-        def after_closure() -> tuple[dict[str, Any], dict[int, Any]] | None:
-            # The graph and the trajectory are two reads: the pair counts only if no newer
-            # graph was published between them (a loaded machine relaxes it in between).
+        def after_closure() -> tuple[dict[str, Any], dict[int, Any], dict[str, Any]] | None:
+            # The graph, the trajectory and the pose are separate reads: they count together
+            # only if no newer graph was published between them (the back end may still relax).
             g = client.get(f"/sessions/{sid}/graph").json()
             if g["revision"] <= revision:
                 return None
             served = {p["sequence"]: p for p in _all_poses(lambda u: client.get(u).json(), sid)}
+            now = client.get(f"/sessions/{sid}/pose").json()
             same = client.get(f"/sessions/{sid}/graph?nodes=false").json()["revision"]
-            return (g, served) if same == g["revision"] else None
+            return (g, served, now) if same == g["revision"] else None
 
-        graph, poses = wait_for(after_closure, 10, "the graph after the closure")
+        graph, poses, pose = wait_for(after_closure, 10, "the graph after the closure")
         nodes = graph["nodes"]
         moved = 0.0
         for n in nodes:  # every node's scan, as served, sits where the graph put its node
@@ -140,7 +141,6 @@ def test_loop_closure_in_process(runtime: MappingRuntime) -> None:
             moved = max(moved, math.hypot(n["x"] - n["frontend_x"], n["y"] - n["frontend_y"]))
         assert moved > 0.1
         last = max(poses.values(), key=lambda p: p["sequence"])
-        pose = client.get(f"/sessions/{sid}/pose").json()
         assert pose["sequence"] == last["sequence"]
         assert (pose["x"], pose["y"]) == pytest.approx((last["x"], last["y"]), abs=1e-9)
         end = nodes[-1]
