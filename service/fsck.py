@@ -1,7 +1,8 @@
 """`mapping-service fsck DATA_DIR [--repair]`: check a data directory; repair what is provable.
 
 Per session folder it checks `session.json`, every recording segment (damaged records, torn
-tails) and every checkpoint (checksum, format). `--repair` only does what needs no guess:
+tails), every checkpoint (checksum, format) and the array pack the checkpoints refer to (each
+entry's checksum). `--repair` only does what needs no guess:
 
 - a recording segment with damaged records is rewritten with exactly its intact records, in
   order (the original is kept beside it as `<file>.bak-<unix time>`);
@@ -34,8 +35,15 @@ from clients.recording import (
     scan_file,
 )
 from service.app import checkpoint as ckpt
+from service.app import statecodec
 from service.app.errors import StoreError
-from service.app.store import LEGACY_CHECKPOINT, parse_checkpoint, parse_segment, read_meta
+from service.app.store import (
+    LEGACY_CHECKPOINT,
+    parse_checkpoint,
+    parse_pack,
+    parse_segment,
+    read_meta,
+)
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +86,8 @@ def check_session(directory: Path, *, repair: bool) -> SessionReport:
             _check_segment(path, report, repair=repair)
         elif cp is not None:
             _check_checkpoint(path, report, repair=repair)
+        elif parse_pack(path.name) is not None:
+            _check_pack(path, report)
         elif path.name == LEGACY_CHECKPOINT:
             report.notes.append(f"{path.name}: old pickle checkpoint, never loaded (replayed)")
         elif ".damaged" in path.name or ".bak-" in path.name or path.name.endswith(".rejected"):
@@ -134,6 +144,27 @@ def _check_checkpoint(path: Path, report: SessionReport, *, repair: bool) -> Non
             os.replace(path, path.with_name(path.name + ".rejected"))
             _fsync_dir(path.parent)
             finding.repaired = True
+
+
+def _check_pack(path: Path, report: SessionReport) -> None:
+    """The array pack of the checkpoints: a damaged entry makes each checkpoint that refers
+    to it (or to a later one) restore by replay; nothing to repair in place."""
+    try:
+        pack = statecodec.check_pack(path)
+    except OSError as err:
+        report.findings.append(Finding(path.name, f"unreadable: {err}", repairable=False))
+        return
+    if pack.torn_tail_bytes:
+        report.notes.append(f"{path.name}: torn tail of {pack.torn_tail_bytes} bytes (a crash)")
+    if pack.damaged_at is not None:
+        report.findings.append(
+            Finding(
+                path.name,
+                f"{pack.damage} at byte {pack.damaged_at} (after {pack.entries} intact "
+                "entries): checkpoints that refer to it are replayed instead",
+                repairable=False,
+            )
+        )
 
 
 def _fsync_dir(path: Path) -> None:

@@ -5,7 +5,8 @@ Layout::
     magic      b"MMCKPT1\\n"                 8 bytes
     header_len u32 little-endian
     header     JSON: format, epoch, segment, scans_accepted, poses, map_revision, state_bytes
-    state      `Mapper.state()`: a compressed npz of arrays plus a JSON tree (no code)
+    state      `Mapper.state()`: a compressed npz of arrays plus a JSON tree (no code); its
+               frozen arrays are in the epoch's array pack (`statecodec.ArrayPack`)
     sha256     32 bytes over everything before it
 
 A checkpoint only shortens a restart (the recording stays the truth), so any doubt, a bad

@@ -47,6 +47,7 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final, NamedTuple, Protocol
 
 import numpy as np
@@ -207,8 +208,12 @@ class Mapper(Protocol):
 
     def reset(self) -> None: ...
     def snapshot(self) -> Any: ...  # service.core.maps.grid.GridImage
-    def state(self) -> bytes: ...  # for checkpoints
-    def restore(self, state: bytes) -> None: ...
+    def state(self, pack_path: str | None = None) -> bytes:
+        """For checkpoints; with `pack_path`, frozen arrays go to that `statecodec.ArrayPack`
+        once (fsynced when this returns) and the bytes refer to them."""
+        ...
+
+    def restore(self, state: bytes, pack_path: str | None = None) -> None: ...
     def close(self) -> None: ...
 
 
@@ -226,6 +231,7 @@ class LocalMapper:
         self._estimator = engine.make_estimator(use_odometry)
         self._grid = engine.make_grid(resolution_m)
         self._backend: LiveBackend | None = None
+        self._array_pack: statecodec.ArrayPack | None = None  # `state`, `restore`
         if engine.loop_closure:
             from service.app.backend import LiveBackend  # noqa: PLC0415  # gtsam: only when used
 
@@ -278,6 +284,7 @@ class LocalMapper:
     def reset(self) -> None:
         self._estimator.reset()
         self._grid = self._engine.make_grid(self._resolution_m)
+        self._array_pack = None  # a reset is a new recording epoch: a new pack
         if self._backend is not None:
             self._backend.reset()
 
@@ -295,10 +302,19 @@ class LocalMapper:
         """Where the checkpoint codec may find classes: the core and our own factories'."""
         return ("service.core", type(self._estimator).__module__, type(self._grid).__module__)
 
-    def state(self) -> bytes:
+    def _pack(self, pack_path: str | None) -> statecodec.ArrayPack | None:
+        """The session's array pack (one per recording epoch: a new path is a new pack)."""
+        if pack_path is None:
+            return None
+        if self._array_pack is None or self._array_pack.path != Path(pack_path):
+            self._array_pack = statecodec.ArrayPack(Path(pack_path))
+        return self._array_pack
+
+    def state(self, pack_path: str | None = None) -> bytes:
         """Estimator, grid and back end as data (arrays plus JSON, compressed): no code, see
         statecodec. Version 2 (a dict) adds the back end; version 1 was the bare pair."""
         allowed = self._allowed_modules()
+        pack = self._pack(pack_path)
 
         def encode(backend: dict[str, Any] | None) -> bytes:
             tree = {
@@ -307,13 +323,13 @@ class LocalMapper:
                 "grid": self._grid,
                 "backend": backend,
             }
-            return statecodec.encode(tree, allowed)
+            return statecodec.encode(tree, allowed, pack)
 
         # The back end's thread is held off its core while it is encoded.
         return self._backend.state(encode) if self._backend is not None else encode(None)
 
-    def restore(self, state: bytes) -> None:
-        tree = statecodec.decode(state, self._allowed_modules())
+    def restore(self, state: bytes, pack_path: str | None = None) -> None:
+        tree = statecodec.decode(state, self._allowed_modules(), self._pack(pack_path))
         backend: Any = None
         if isinstance(tree, tuple) and len(tree) == 2:  # version 1: no back end (it restarts)
             estimator, grid = tree
@@ -703,12 +719,12 @@ class RemoteMapper:
     def snapshot(self) -> Any:
         return self._call("snapshot")
 
-    def state(self) -> bytes:
-        state: bytes = self._call("state")
+    def state(self, pack_path: str | None = None) -> bytes:
+        state: bytes = self._call("state", pack_path)  # the pack is written by the process
         return state
 
-    def restore(self, state: bytes) -> None:
-        self._call("restore", state)
+    def restore(self, state: bytes, pack_path: str | None = None) -> None:
+        self._call("restore", state, pack_path)
 
     def close(self) -> None:
         with contextlib.suppress(MapperError):  # a process gone or going took the state along

@@ -484,7 +484,7 @@ class MappingSession:
         if self._ckpt_segment:
             try:
                 header, state = ckpt.read(self._store.checkpoint_path(self._ckpt_segment))
-                mapper.restore(state)
+                mapper.restore(state, str(self._store.pack_path))
                 start = self._ckpt_segment
                 next_seq = header.poses
             except Exception as err:  # the recording is the truth; a checkpoint saves time
@@ -523,7 +523,9 @@ class MappingSession:
         could take back."""
         assert self._mapper is not None
         try:
-            state = self._mapper.state()
+            # Frozen arrays go to the epoch's pack once (fsynced before this returns), so a
+            # checkpoint costs what changed since the last one, not the whole session.
+            state = self._mapper.state(str(self._store.pack_path))
             segment = self._store.roll()  # fsyncs and closes the segment the checkpoint covers
             header = ckpt.CheckpointHeader(
                 epoch=self._store.meta.epoch,
@@ -654,7 +656,7 @@ class MappingSession:
                 )
                 continue
             try:
-                mapper.restore(state)
+                mapper.restore(state, str(self._store.pack_path))
             except Exception as err:  # written by another version, say: replay instead
                 self._note_checkpoint_rejected(
                     f"segment {candidate.segment}: does not restore: {err}"

@@ -51,6 +51,7 @@ META_FORMAT: Final = 1
 MAP_FILES: Final = ("map.png", "map.pgm", "map.yaml")
 _SEGMENT_FILE = re.compile(r"^epoch-(\d{6})(?:\.(\d{6}))?(\.poses)?\.mrec$")
 _CHECKPOINT_FILE = re.compile(r"^checkpoint-(\d{6})\.(\d{6})\.mck$")
+_PACK_FILE = re.compile(r"^frozen-(\d{6})\.mpack$")
 LEGACY_CHECKPOINT: Final = "checkpoint.pickle"
 
 SessionState = Literal["active", "stopped"]
@@ -155,6 +156,17 @@ def parse_checkpoint(name: str) -> tuple[int, int] | None:
     return (int(m.group(1)), int(m.group(2))) if m is not None else None
 
 
+def pack_name(epoch: int) -> str:
+    """The epoch's array pack: what its checkpoints hold that never changes, written once."""
+    return f"frozen-{epoch:06d}.mpack"
+
+
+def parse_pack(name: str) -> int | None:
+    """The epoch of an array pack's file name, else None."""
+    m = _PACK_FILE.fullmatch(name)
+    return int(m.group(1)) if m is not None else None
+
+
 class SessionStore:
     """The on-disk half of one session. Not thread-safe except `sync()`; callers serialise.
 
@@ -235,6 +247,11 @@ class SessionStore:
     def checkpoint_path(self, segment: int) -> Path:
         return self.directory / checkpoint_name(self.meta.epoch, segment)
 
+    @property
+    def pack_path(self) -> Path:
+        """The array pack this epoch's checkpoints refer to (`statecodec.ArrayPack`)."""
+        return self.directory / pack_name(self.meta.epoch)
+
     def _open_writer(self, report: RecordingReport | None = None) -> None:
         # The writer truncates a torn tail left by a crash before appending anything.
         path = self.recording_path
@@ -262,6 +279,8 @@ class SessionStore:
             parsed = parse_segment(path.name)
             ckpt = parse_checkpoint(path.name)
             epoch = parsed[0] if parsed is not None else ckpt[0] if ckpt is not None else None
+            if epoch is None:
+                epoch = parse_pack(path.name)
             if epoch is not None and epoch != self.meta.epoch:
                 log.info("%s: removing stale %s", self.directory.name, path.name)
                 path.unlink()
@@ -382,6 +401,7 @@ class SessionStore:
     def new_epoch(self) -> None:
         """Start an empty recording (reset). The old epoch is deleted after the commit."""
         old = [seg.path for seg in self.segments()] + [p for _, p in self.checkpoint_paths()]
+        old.append(self.pack_path)
         with self._io_lock:
             self._close_writer_locked()
             self.meta = replace(self.meta, epoch=self.meta.epoch + 1)

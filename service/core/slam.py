@@ -31,7 +31,7 @@ from service.core.frontend.estimator import ManhattanEstimator
 from service.core.frontend.params import EstimatorParams
 from service.core.maps.composed import ChunkedMap
 from service.core.maps.submaps import SubmapBuilder, SubmapParams
-from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate
+from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate, frozen_array
 
 _NOT_ANCHORED = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
 
@@ -120,7 +120,7 @@ class SlamBackend:
             )
         pts = scan.points_xy_m()
         pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= self.params.max_query_range_m]
-        kept = self.submaps.node_points(pts)
+        kept = frozen_array(self.submaps.node_points(pts))  # kept as it is for good
         self.node_frontend.append(pose)
         self.node_points.append(kept)
         self.node_seq.append(seq)

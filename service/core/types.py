@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -54,6 +54,21 @@ def column_bounds(points: npt.NDArray[Any]) -> tuple[float, float, float, float]
     """
     x, y = points[:, 0], points[:, 1]
     return float(x.min()), float(y.min()), float(x.max()), float(y.max())
+
+
+ArrayT = TypeVar("ArrayT", bound="np.ndarray[Any, Any]")
+
+
+def frozen_array(values: ArrayT) -> ArrayT:
+    """`values` as a read-only array that owns its data (a copy when it is a view).
+
+    For data that never changes once made (finished submaps, frozen map chunks, a node's
+    points): checkpoints write such arrays once and refer to them afterwards
+    (`service.app.statecodec.ArrayPack`), and writing into one by mistake raises.
+    """
+    out = values if values.base is None and values.flags.c_contiguous else values.copy()
+    out.flags.writeable = False
+    return out
 
 
 def rotate_point(x_m: float, y_m: float, theta_rad: float) -> tuple[float, float]:

@@ -23,7 +23,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.maps.grid import GridImage, OccupancyGrid, log_odds_image
-from service.core.types import LaserScan, Pose2D
+from service.core.types import LaserScan, Pose2D, frozen_array
 
 F32Array = npt.NDArray[np.float32]
 
@@ -52,10 +52,10 @@ class MapChunk:
         rows = np.nonzero(known.any(axis=1))[0]
         cols = np.nonzero(known.any(axis=0))[0]
         if rows.shape[0] == 0:
-            self.frozen = np.zeros((0, 0), dtype=np.float32)
+            self.frozen = frozen_array(np.zeros((0, 0), dtype=np.float32))
         else:
             r0, r1, c0, c1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-            self.frozen = np.ascontiguousarray(dense[r0:r1, c0:c1])
+            self.frozen = frozen_array(dense[r0:r1, c0:c1])
             i0, j0 = i0 + r0, j0 + c0
         self.cell_i0, self.cell_j0 = i0, j0
         self.grid = None

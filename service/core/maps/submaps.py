@@ -27,7 +27,7 @@ import numpy as np
 import numpy.typing as npt
 
 from service.core.maps.grid import OccupancyGrid
-from service.core.types import FloatArray, LaserScan, Pose2D, rotate_points
+from service.core.types import FloatArray, LaserScan, Pose2D, frozen_array, rotate_points
 
 F32Array = npt.NDArray[np.float32]
 
@@ -156,7 +156,7 @@ class ObservedMask:
     @classmethod
     def of(cls, grid: OccupancyGrid) -> ObservedMask:
         log_odds, i0, j0 = grid.log_odds()
-        return cls(np.ascontiguousarray(log_odds != 0.0), int(i0), int(j0), grid.resolution_m)
+        return cls(frozen_array(log_odds != 0.0), int(i0), int(j0), grid.resolution_m)
 
     @property
     def nbytes(self) -> int:
@@ -287,7 +287,7 @@ class Submap:
         pts = np.concatenate(self.chunks) if self.chunks else np.zeros((0, 2))
         if pts.shape[0] == 0:
             pts = np.zeros((1, 2))
-        self.chunks = [voxel_thin(pts, params.resolution_m)]  # what the field is built from
+        self.chunks = [frozen_array(voxel_thin(pts, params.resolution_m))]  # the field's points
         self.observed_mask = ObservedMask.of(self.observed) if self.observed is not None else None
         self.observed = None  # the mask is all the loop search needs of it
         self.finished = True

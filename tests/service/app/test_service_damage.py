@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 from conftest import REPO_ROOT, wait_for
 from fastapi.testclient import TestClient
@@ -597,6 +598,30 @@ def test_fsck_reports_and_repairs_without_guessing(
     again = runtime_factory(data).sessions.get(session.id)
     assert again.status == "ok"  # what remains is intact; the loss was reported by fsck
     assert fsck("--help").returncode == 0
+
+
+def test_fsck_checks_the_array_pack(tmp_path: Path, runtime_factory: RuntimeFactory) -> None:
+    """Each entry of the pack the checkpoints refer to is checked; a damaged one is reported
+    (not repairable in place: the service replays past the checkpoints that use it)."""
+    from service.app import statecodec
+    from service.core.types import frozen_array
+
+    data = tmp_path / "data"
+    live = runtime_factory(data)
+    session = live.sessions.create("r1", 0.05, True)
+    feed(live, SimRobot("r1"), 20)
+    live.close()
+    pack = data / "sessions" / session.id / "frozen-000000.mpack"
+    arrays = {"a": frozen_array(np.ones(1000)), "b": frozen_array(np.arange(2000.0))}
+    statecodec.encode(arrays, ("service.core",), statecodec.ArrayPack(pack))
+    assert fsck(str(data)).returncode == 0
+    raw = bytearray(pack.read_bytes())
+    raw[-10] ^= 0x5A
+    pack.write_bytes(bytes(raw))
+    report = fsck(str(data))
+    assert report.returncode == 1, report.stderr
+    assert f"{pack.name}: checksum mismatch at byte" in report.stdout
+    assert "not repairable" in report.stdout
 
 
 def test_fsck_refuses_a_directory_in_use(tmp_path: Path, runtime_factory: RuntimeFactory) -> None:

@@ -26,7 +26,7 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
 from clients.keyexpr import scan_key
 from clients.recording import RecordingWriter, iter_raw_records
 from clients.wire import Pose, Scan
-from service.app import checkpoint
+from service.app import checkpoint, statecodec
 from service.app.errors import StoreError
 from service.app.sessions import MappingSession, SessionInfo
 
@@ -200,6 +200,70 @@ def test_restart_from_checkpoint_replays_only_the_tail(
         path.write_bytes(b"not a checkpoint")
     assert_same_session_data(expected, runtime_factory(crash).sessions.get(session.id))
     assert len(estimated) == 25
+
+
+@MAPPERS
+def test_checkpoints_write_frozen_data_once(
+    tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch, mappers: int
+) -> None:
+    """With loop closure, what never changes again (finished submaps, frozen map chunks, the
+    nodes' points) goes to the epoch's array pack once: a checkpoint appends what froze since
+    the one before, not the whole session. A restart restores from the pack; a damaged pack
+    makes its checkpoints restore by replay instead, and nothing is lost."""
+    monkeypatch.setattr(MappingSession, "checkpoint_every_scans", 400)
+    data = tmp_path / "data"
+    live = runtime_factory(data, mapper_processes=mappers)
+    session = live.sessions.create("r1", 0.05, True)
+    folder = data / "sessions" / session.id
+    robot = SimRobot("r1")
+    pack_sizes = []
+    for k in range(3):
+        # Every 400th scan checkpoints (with mapper processes, before the next is forwarded).
+        feed(live, robot, 400 if k else 401)
+        packs = list(folder.glob("frozen-*.mpack"))
+        assert len(packs) == 1
+        pack_sizes.append(packs[0].stat().st_size)
+    assert 0 < pack_sizes[0] < pack_sizes[1] < pack_sizes[2]
+    # The third checkpoint appended less than the pack held: the first two's arrays stayed.
+    assert pack_sizes[2] - pack_sizes[1] < pack_sizes[1]
+    assert statecodec.check_pack(packs[0]).damaged_at is None
+    newest = max(folder.glob("checkpoint-*.mck"))
+    _, state = checkpoint.read(newest)
+    with pytest.raises(statecodec.StateCodecError, match="array pack"):
+        statecodec.decode(state, ("service.core",))  # the frozen arrays are not in it
+    crash = tmp_path / "crash"
+    shutil.copytree(data, crash)  # a kill -9 image
+    expected = seen(session)
+    live.close()
+
+    estimated: list[int] = []
+    original = MappingSession._estimate
+
+    def counting(self: MappingSession, scan: Scan) -> Pose | None:
+        estimated.append(scan.seq)
+        return original(self, scan)
+
+    monkeypatch.setattr(MappingSession, "_estimate", counting)
+    damaged = tmp_path / "damaged"
+    shutil.copytree(crash, damaged)
+    second = runtime_factory(crash)
+    assert len(estimated) == 1  # from the checkpoint at scan 1,200
+    assert_same_session(expected, second.sessions.get(session.id))
+    second.close()
+
+    # A flipped byte in the pack: every checkpoint refers to its first entries.
+    pack = next((damaged / "sessions" / session.id).glob("frozen-*.mpack"))
+    raw = bytearray(pack.read_bytes())
+    raw[100] ^= 0x5A
+    pack.write_bytes(bytes(raw))
+    assert statecodec.check_pack(pack).damaged_at == 0
+    third = runtime_factory(damaged)
+    restored = third.sessions.get(session.id)
+    assert len(estimated) == 1 + 1201  # replayed from the recording
+    assert_same_session_data(expected, restored)
+    assert restored.damage.checkpoints_rejected == 2
+    assert restored.damage.records_lost == 0
+    third.close()
 
 
 @MAPPERS

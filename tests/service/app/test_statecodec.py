@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -134,3 +135,64 @@ def test_checkpoint_file_rejects_any_changed_byte() -> None:
     for cut in (0, 7, len(data) // 2, len(data) - 1):
         with pytest.raises(checkpoint.CheckpointError):
             checkpoint.decode(data[:cut])
+
+
+def test_frozen_arrays_go_to_the_pack_once(tmp_path: Path) -> None:
+    """A read-only array that owns its data is appended to the pack by the first encode that
+    holds it and referred to afterwards; everything else stays in the bytes. A pack opened
+    for a restore knows what it read, so the next checkpoint appends nothing again."""
+    from service.core.types import frozen_array
+
+    big = frozen_array(np.arange(4096, dtype=np.float64).reshape(64, 64))
+    small = frozen_array(np.arange(8, dtype=np.float64))  # under PACK_MIN_BYTES: inline
+    live = np.zeros((64, 64))  # writeable: it may change, so it is written every time
+    view = frozen_array(np.arange(1024.0))[:512]  # a view does not own its data: inline
+    tree = {"big": big, "again": big, "small": small, "live": live, "view": view}
+    pack = statecodec.ArrayPack(tmp_path / "frozen.mpack")
+    first = statecodec.encode(tree, CORE, pack)
+    size = pack.path.stat().st_size
+    assert 0 < size < big.nbytes  # one entry, deflated
+    assert len(first) < live.nbytes  # `big` is not in the bytes, `live` is
+    assert statecodec.encode(tree, CORE, pack) == first
+    assert pack.path.stat().st_size == size  # nothing appended twice
+    with pytest.raises(statecodec.StateCodecError, match="array pack"):
+        statecodec.decode(first, CORE)
+    reopened = statecodec.ArrayPack(pack.path)
+    back = statecodec.decode(first, CORE, reopened)
+    np.testing.assert_array_equal(back["big"], big)
+    assert back["again"] is back["big"]
+    assert not back["big"].flags.writeable
+    assert back["live"].flags.writeable
+    np.testing.assert_array_equal(back["view"], view)
+    statecodec.encode(back, CORE, reopened)
+    assert pack.path.stat().st_size == size
+    assert statecodec.check_pack(pack.path) == statecodec.PackReport(1, size, None)
+
+
+def test_a_damaged_or_missing_pack_entry_is_refused(tmp_path: Path) -> None:
+    from service.core.types import frozen_array
+
+    tree = {"a": frozen_array(np.ones(1000)), "b": frozen_array(np.arange(2000.0))}
+    path = tmp_path / "frozen.mpack"
+    data = statecodec.encode(tree, CORE, statecodec.ArrayPack(path))
+    good = path.read_bytes()
+    damaged = bytearray(good)
+    damaged[-10] ^= 0x5A  # inside the second entry's deflated bytes
+    path.write_bytes(bytes(damaged))
+    with pytest.raises(statecodec.StateCodecError, match="checksum"):
+        statecodec.decode(data, CORE, statecodec.ArrayPack(path))
+    report = statecodec.check_pack(path)
+    assert (report.entries, report.damage) == (1, "checksum mismatch")
+    path.write_bytes(good[:-10])  # cut by a crash: the entry is incomplete
+    with pytest.raises(statecodec.StateCodecError, match="cut short"):
+        statecodec.decode(data, CORE, statecodec.ArrayPack(path))
+    assert statecodec.check_pack(path).torn_tail_bytes > 0
+    path.unlink()
+    with pytest.raises(statecodec.StateCodecError, match="unreadable"):
+        statecodec.decode(data, CORE, statecodec.ArrayPack(path))
+    # A pack cut or replaced under a live writer: its entries are written again, not assumed.
+    pack = statecodec.ArrayPack(path)
+    statecodec.encode(tree, CORE, pack)
+    path.write_bytes(b"")
+    again = statecodec.encode(tree, CORE, pack)
+    np.testing.assert_array_equal(statecodec.decode(again, CORE, pack)["b"], tree["b"])
