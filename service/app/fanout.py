@@ -11,9 +11,10 @@ subscribers:
   session's streams, each reading from its own cursor (a stream that falls more than the depth
   behind loses the oldest frames, each counted exactly once per pose and stream). One timer per
   `min_interval_s` wakes the streams of the sessions that have new frames, and each writes all
-  of its frames at once: per pose the loop does one append whatever the number of streams, and
-  1,000 streams cost it at most 1,000 writes per interval; a stalled browser holds only its
-  cursor.
+  of its frames at once: per pose the loop does one append whatever the number of streams; a
+  stalled browser holds only its cursor. The interval grows with the streams so that all of
+  them together make at most `max_writes_per_s` writes a second (1,000 streams at the default
+  1,000: one write each per second, not five): the loop's cost is bounded, not the streams'.
 """
 
 from __future__ import annotations
@@ -82,6 +83,7 @@ class PoseStream:
     wake: asyncio.Event = field(default_factory=asyncio.Event)
     ended: bool = False
     ping: bool = False  # a keep-alive comment is due
+    woken: bool = False  # a tick (or a ping) came since the last write
     dropped: int = 0  # poses this stream lost because it was not read in time
     skip: tuple[int, int] | None = None  # (seq, stamp_ns) already sent when the stream opened
     last_write: float = field(default_factory=time.monotonic)
@@ -116,10 +118,13 @@ class PoseStream:
         self.wake.set()
 
     async def next_chunk(self) -> bytes | None:
-        """Every frame buffered since the last chunk, as one write; a keep-alive comment when
-        one is due; None once ended and emptied."""
+        """Every frame buffered since the last chunk, as one write, once the fan-out's tick
+        wakes the stream (at most one write per tick: frames that come while a write is
+        being sent wait for the next tick); a keep-alive comment when one is due; the rest
+        and then None once ended."""
         while True:
-            if self.has_frames:
+            if self.has_frames and (self.woken or self.ended):
+                self.woken = False
                 chunk = self.take()
                 if chunk:
                     self.last_write = time.monotonic()
@@ -128,11 +133,12 @@ class PoseStream:
             if self.ended:
                 return None
             if self.ping:
-                self.ping = False
+                self.ping = self.woken = False
                 self.last_write = time.monotonic()
                 return KEEPALIVE_FRAME
             await self.wake.wait()
             self.wake.clear()
+            self.woken = True
 
 
 @dataclass
@@ -148,11 +154,13 @@ class PoseFanout:
         metrics: Metrics,
         stream_queue_depth: int,
         stream_min_interval_s: float = 0.2,
+        max_writes_per_s: float = 0.0,
     ) -> None:
         self._prefix = prefix
         self._metrics = metrics
         self._depth = stream_queue_depth
         self._min_interval_s = stream_min_interval_s
+        self._max_writes_per_s = max_writes_per_s
         self._encode_frame: FrameEncoder | None = None
         self._due: set[str] = set()  # sessions with new frames, their streams woken at the tick
         self._tick_pending = False
@@ -256,7 +264,14 @@ class PoseFanout:
             # One timer for all streams: each writes at most once per interval.
             self._tick_pending = True
             assert self._loop is not None
-            self._loop.call_later(self._min_interval_s, self._tick)
+            self._loop.call_later(self.interval_s(), self._tick)
+
+    def interval_s(self) -> float:
+        """Time between two writes to a stream: the configured interval, longer when the open
+        streams would together write more than `max_writes_per_s` times a second."""
+        if self._max_writes_per_s <= 0.0:
+            return self._min_interval_s
+        return max(self._min_interval_s, self._stream_count / self._max_writes_per_s)
 
     def _tick(self) -> None:
         """Wake every stream of the sessions that have new frames (on the loop)."""

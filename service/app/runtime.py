@@ -75,7 +75,11 @@ class MappingRuntime:
         )
         prefix = settings.zenoh.prefix
         self.fanout = PoseFanout(
-            prefix, self.metrics, settings.http.sse_queue_depth, settings.http.sse_interval_s
+            prefix,
+            self.metrics,
+            settings.http.sse_queue_depth,
+            settings.http.sse_interval_s,
+            settings.http.sse_max_writes_per_s,
         )
         self.metrics.counter(
             DUPLICATE_PUBLISHERS,

@@ -44,6 +44,11 @@ class HttpSettings(_Frozen):
     sse_interval_s: float = Field(
         default=0.2, ge=0.0, le=5.0, description="shortest time between two writes to a stream"
     )
+    # All streams together: with more streams than this × the interval, each writes less
+    # often (1,000 streams: once a second), so the event loop's writes stay bounded.
+    sse_max_writes_per_s: float = Field(
+        default=1000.0, ge=0.0, description="writes to all browser streams per second (0: no bound)"
+    )
 
 
 class ZenohSettings(_Frozen):
@@ -295,6 +300,7 @@ def build_settings(
                 max_body_bytes="MAX_BODY_BYTES",
                 sse_queue_depth="SSE_QUEUE_DEPTH",
                 sse_interval_s="SSE_INTERVAL_S",
+                sse_max_writes_per_s="SSE_MAX_WRITES_PER_S",
             ),
         },
         "zenoh": {

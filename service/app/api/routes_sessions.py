@@ -301,7 +301,8 @@ def sse_pose_frame(pose: Pose) -> bytes:
     summary="Live poses (Server-Sent Events)",
     description="`event: pose` with a `PoseView` JSON as `data` for every new pose, starting "
     "with the current one. Poses that arrive together are written together (at most one write "
-    "per `MAPPING_SSE_INTERVAL_S`, default 0.2 s). A slow reader loses the oldest poses "
+    "per `MAPPING_SSE_INTERVAL_S`, default 0.2 s, and longer when more streams are open than "
+    "`MAPPING_SSE_MAX_WRITES_PER_S` allows at that interval). A slow reader loses the oldest poses "
     "(counted in /metrics), never slows the service. Comment lines (`: ping`) keep idle "
     "connections open. With a read token, the token may also be given as `?access_token=` "
     "(EventSource cannot set headers).",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import threading
+import time
 from collections import Counter
 from dataclasses import dataclass
 from typing import Any
@@ -21,7 +22,7 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
 
 from clients.keyexpr import pose_wildcard, scan_key
 from clients.wire import Pose, decode_pose, encode_scan
-from service.app.fanout import PoseFanout
+from service.app.fanout import PoseFanout, PoseStream
 from service.app.mapper import Engine, default_estimator_factory, local_mapper_factory
 from service.app.metrics import Metrics
 from service.app.runtime import MappingRuntime
@@ -339,6 +340,52 @@ def test_stream_fanout_work_per_pose_does_not_grow_with_the_streams(
     got = asyncio.run(scenario())
     assert all(seqs == list(range(poses)) for seqs in got)
     assert appends == list(range(poses))
+
+
+def test_stream_writes_stay_within_the_write_budget() -> None:
+    """With more streams than the budget allows at the configured interval, each stream
+    writes less often: all of them together stay within `max_writes_per_s`, and every stream
+    still gets every pose (batched into fewer writes)."""
+    fanout = PoseFanout(
+        "robots",
+        Metrics(),
+        stream_queue_depth=512,
+        stream_min_interval_s=0.01,
+        max_writes_per_s=200.0,
+    )
+    streams_count, poses = 20, 200
+    writes = 0
+
+    async def reader(stream: PoseStream) -> list[int]:
+        nonlocal writes
+        seqs: list[int] = []
+        while len(seqs) < poses:
+            chunk = await asyncio.wait_for(stream.next_chunk(), 10)
+            assert chunk is not None
+            writes += 1
+            seqs.extend(int(x) for x in chunk.decode().split())
+        return seqs
+
+    async def scenario() -> tuple[list[list[int]], float]:
+        fanout.bind_loop(asyncio.get_running_loop(), lambda p: f"{p.seq}\n".encode())
+        streams = [fanout.open_stream("s-1") for _ in range(streams_count)]
+        assert fanout.interval_s() == pytest.approx(streams_count / 200)  # not 0.01 s
+        tasks = [asyncio.create_task(reader(s)) for s in streams]
+        t0 = time.monotonic()
+        for seq in range(poses):  # 200 poses over ~1 s
+            fanout.publish(Pose("s-1", "r1", seq, seq, 0.0, 0.0, 0.0, 1.0))
+            await asyncio.sleep(0.005)
+        got = await asyncio.gather(*tasks)
+        elapsed = time.monotonic() - t0
+        for stream in streams:
+            fanout.close_stream(stream)
+        return got, elapsed
+
+    got, elapsed = asyncio.run(scenario())
+    assert all(seqs == list(range(poses)) for seqs in got)
+    # At most one write per stream per 0.1 s (the last poses' write may come one tick late);
+    # without the budget each would write every 0.01 s: ~2,000 writes.
+    assert writes <= 200 * elapsed * 1.2 + streams_count
 
 
 def test_recording_failure_is_counted_and_the_worker_survives(
