@@ -2,10 +2,10 @@
 
 Feeds N simulated UTM-30LX scans (1,081 beams, the synthetic building of the tests) through a
 real `SessionManager` in a temporary data directory, with the service's checkpoint interval
-(2,400 scans), then measures the files: the recording segments, the checkpoints (and a pickle of
-the same estimator and grid, the old format), and what retention leaves. Bytes per robot-hour
-are projected at 40 Hz (144,000 scans an hour). Sizes, not speed: the machine's load does not
-change them.
+(2,400 scans), then measures the files: the recording segments, the checkpoints and their
+array pack (and a pickle of the same estimator and grid, the old format), and what retention
+leaves. Bytes per robot-hour are projected at 40 Hz (144,000 scans an hour). Sizes, not speed:
+the machine's load does not change them.
 """
 
 from __future__ import annotations
@@ -71,6 +71,8 @@ def measure(count: int) -> dict[str, float]:
             pickled = len(pickle.dumps((mapper._estimator, mapper._grid), protocol=5))
             recording = sum(p.stat().st_size for p in folder.glob("epoch-*.mrec"))
             checkpoints = [p.stat().st_size for p in folder.glob("checkpoint-*.mck")]
+            # What the checkpoints hold that never changes, written once: kept for the session.
+            pack = sum(p.stat().st_size for p in folder.glob("frozen-*.mpack"))
             freed = session.prune(0.0)
             retained = sum(p.stat().st_size for p in folder.glob("epoch-*.mrec"))
             pose_only = sum(p.stat().st_size for p in folder.glob("epoch-*.poses.mrec"))
@@ -81,17 +83,23 @@ def measure(count: int) -> dict[str, float]:
     interval = MappingSession.checkpoint_every_scans
     per_scan = recording / count
     pose_per_scan = pose_only / (pruned_segments * interval) if pruned_segments else math.nan
-    hour_no_retention = per_scan * SCANS_PER_HOUR + max(checkpoints, default=0) * 2
+    pack_per_scan = pack / count
+    hour_no_retention = (per_scan + pack_per_scan) * SCANS_PER_HOUR + max(
+        checkpoints, default=0
+    ) * 2
     # With retention: poses of the whole hour, the scans of the two newest checkpoint intervals
-    # (all retention keeps), two checkpoints.
+    # (all retention keeps), two checkpoints, and the array pack (never pruned).
     hour_retained = (
-        pose_per_scan * SCANS_PER_HOUR + per_scan * 2 * interval + max(checkpoints, default=0) * 2
+        (pose_per_scan + pack_per_scan) * SCANS_PER_HOUR
+        + per_scan * 2 * interval
+        + max(checkpoints, default=0) * 2
     )
     return {
         "scans": count,
         "recording_bytes_per_scan": per_scan,
         "pose_bytes_per_scan_after_pruning": pose_per_scan,
         "checkpoint_bytes": float(max(checkpoints, default=0)),
+        "array_pack_bytes_per_scan": pack_per_scan,
         "pickle_bytes_same_state": float(pickled),
         "freed_by_pruning_bytes": float(freed),
         "retained_bytes_after_pruning": float(retained),
