@@ -49,7 +49,6 @@ from service.core.frontend.heading import (
     thin_points,
     track_heading,
 )
-from service.core.frontend.motion import MotionModels
 from service.core.frontend.odometry import OdometryConsistency
 from service.core.frontend.params import EstimatorParams
 from service.core.frontend.profile import profile_turn
@@ -253,7 +252,6 @@ class ManhattanEstimator:
         self._pose = Pose2D(0.0, 0.0, 0.0)
         self._stamp_ns: int | None = None
         self._velocity: Pose2D | None = None  # last motion per second, robot frame
-        self._motion = MotionModels()  # the per-second model beside it, and their weights
         self._odom: Pose2D | None = None
         self._major_axis: int | None = None
         self._keyframes: deque[_Keyframe] = deque(maxlen=max(1, self.params.local_map_keyframes))
@@ -307,7 +305,6 @@ class ManhattanEstimator:
         self.__dict__.setdefault("_frames", WallFrames(self.params.frames))
         self.__dict__.setdefault("_seen_keyframes", deque(maxlen=SeenThroughParams().keyframes))
         self.__dict__.setdefault("_last_free", None)
-        self.__dict__.setdefault("_motion", MotionModels())
         for frame in [*self.__dict__.get("_keyframes", ()), self.__dict__.get("_last_scan")]:
             if frame is not None and not hasattr(frame, "direction_counts"):
                 frame.derive()
@@ -384,10 +381,7 @@ class ManhattanEstimator:
             dt = self._dt_s(scan)
             dt = min(max(dt, 0.0), 1.0)
             v = self._velocity
-            step = (v.x_m * dt, v.y_m * dt)
-            if p.motion_models and self._steady_stamps():
-                step = self._motion.predict(step, self._step_s(scan))
-            pred = self._pose.compose(Pose2D(step[0], step[1], v.theta_rad * dt))
+            pred = self._pose.compose(Pose2D(v.x_m * dt, v.y_m * dt, v.theta_rad * dt))
         # Between frequent scans (40 Hz) the robot cannot turn far: the turn rate will do.
         fast = self._fast_steady_scans(scan, p.profile_turn_min_period_s)
         turn = self._profile_turn(scan) if p.profile_turn and not fast else None
@@ -460,24 +454,19 @@ class ManhattanEstimator:
         return max(*self._periods_s, (scan.stamp_ns - self._stamp_ns) * 1e-9)
 
     def _fast_steady_scans(self, scan: LaserScan, max_period_s: float) -> bool:
-        """This scan and the recent ones came at most `max_period_s` apart, at a steady rate
-        (`_steady_stamps`). A few long gaps (scans dropped under load) do not stop tracking."""
-        if not self._steady_stamps() or self._stamp_ns is None:
+        """This scan and the recent ones came at most `max_period_s` apart, at a steady rate.
+
+        Steady: the short recent periods are at least half the median, which rules out bursty
+        logged stamps (Intel: 1 ms then 0.5 s) where a short stamp gap says nothing about the
+        motion. A few long gaps (scans dropped under load) do not stop tracking.
+        """
+        if len(self._periods_s) < 5 or self._stamp_ns is None:
             return False
         if (scan.stamp_ns - self._stamp_ns) * 1e-9 > max_period_s:
             return False
         recent = sorted(self._periods_s)
-        return recent[len(recent) // 2] <= max_period_s
-
-    def _steady_stamps(self) -> bool:
-        """The recent stamps measure time: their short periods are at least half the median.
-        That rules out bursty logged stamps (Intel: 1 ms then 0.5 s, steady on 5 % of its
-        scans; ACES on 97 %, the generated worlds on 99.6-100 %), where a short stamp gap
-        says nothing about the motion."""
-        if len(self._periods_s) < 5:
-            return False
-        recent = sorted(self._periods_s)
-        return recent[len(recent) // 10] >= 0.5 * recent[len(recent) // 2]
+        median = recent[len(recent) // 2]
+        return median <= max_period_s and recent[len(recent) // 10] >= 0.5 * median
 
     def _track_heading(
         self, pts: FloatArray, pred: Pose2D, scan: LaserScan
@@ -1302,37 +1291,6 @@ class ManhattanEstimator:
             weak,
         )
 
-    def _observe_motion(
-        self,
-        scan: LaserScan,
-        step: Pose2D,
-        flags: PoseFlag,
-        sigmas_m: tuple[float | None, float | None],
-        dt_s: float,
-        *,
-        dense: bool,
-    ) -> None:
-        """Teach the motion models (`motion`) the committed step, before the per-scan velocity
-        learns it. Stamps that come in bursts say nothing about the time between two scans:
-        there the per-second model and its evidence are forgotten. So they are on sparse
-        scans (180-beam SICK): on both real logs its evidence moved the runs by chance (five
-        starts, loop closure on: ACES median 0.062 -> 0.068 m; Intel's start at 60 % of the
-        log 0.41 -> 1.55 m), as items 11, 19, 20 and 25 did."""
-        if not (dense and self._steady_stamps()):
-            self._motion = MotionModels()
-            return
-        v = self._velocity
-        measured = not flags & _POSITION_UNSURE and None not in sigmas_m
-        period_s = self._step_s(scan)
-        self._motion.observe(
-            (step.x_m, step.y_m),
-            None if v is None else (v.x_m * dt_s, v.y_m * dt_s),
-            period_s,
-            sigma_m=max(s for s in sigmas_m if s is not None) if measured else None,
-            max_speed_m_s=self.params.max_speed_m_s,
-            max_step_change_m=self.params.max_accel_m_s2 * period_s * period_s,
-        )
-
     def _commit(
         self,
         scan: LaserScan,
@@ -1356,9 +1314,6 @@ class ManhattanEstimator:
             # that a featureless corridor does not stop the robot (the stationary-lock failure).
             if 1e-4 < dt < 2.0:
                 d = self._pose.between(pose)
-                if p.motion_models and p.use_prediction and not flags & PoseFlag.ODOMETRY_PRIOR:
-                    dense = pts is not None and self._dense(pts)
-                    self._observe_motion(scan, d, flags, sigmas_m, dt, dense=dense)
                 vx, vy, w = d.x_m / dt, d.y_m / dt, d.theta_rad / dt
                 speed = math.hypot(vx, vy)
                 if speed > p.max_speed_m_s:

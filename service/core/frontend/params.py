@@ -53,7 +53,6 @@ class EstimatorParams:
     max_turn_rate_deg_s: float = 120.0
     max_accel_m_s2: float = 0.5  # bound on the constant-velocity model's change (0: none)
     scan_period_s: float = 0.2  # > 0: constant motion per scan (this nominal period), not time
-    motion_models: bool = True  # ... blended with constant motion per second (`motion`)
     period_clip_ratio: float = 2.0  # scan period clipped to [1/r, r] × the recent median
     turn_rate_decay: float = 0.5  # per scan, while the heading is a fallback (not measured)
     translation_window_pred_m: float = 0.4  # ± translation search around the prediction
