@@ -10,7 +10,9 @@ A closure is kept only when it passes these checks, and each refusal is counted 
 - `low_score`: the best mean likelihood of the scan's points is below `min_score`;
 - `ambiguous`: another placement farther than `ambiguity_separation_m` scores nearly as well
   (a twin room, a periodic wall, a corridor's length), or a dense query's peak, refined on
-  the points the submap observed at every shift near it (`refine_peak`), keeps moving. A
+  the points the submap observed at every shift near it (`refine_peak`), keeps moving, or the
+  score's spread puts more σ on some axis than `max_match_sigma_m`, or than the graph's own
+  guess has (`max_match_to_chain` × the chain's σ). A
   ridge could be kept as a closure with a long covariance instead; measured on ACES, such
   closures did harm (mean relation error 0.096 m rejecting them, 0.19-0.27 m keeping them),
   so a closure must pin both axes;
@@ -69,6 +71,7 @@ class LoopParams:
     refine_moves: int = 6  # ... searched this often at most while the best moves
     match_sigma_floor_m: float = 0.02  # a closure's translation σ, at least
     max_match_sigma_m: float = 0.6  # a closure this loose along its worst axis says nothing
+    max_match_to_chain: float = 1.0  # ... and one looser than this × the chain's σ adds nothing
     match_sigma_deg: float = 0.3  # σ of a closure's rotation
 
 
@@ -328,8 +331,11 @@ def verify(  # noqa: PLR0917 - the query, the candidate and the graph's view of 
     d = np.array([peak.x_m - guess.x_m, peak.y_m - guess.y_m])
     result = replace(result, relative=peak, cov_xy=cov_xy, correction_m=float(np.hypot(*d)))
     loosest_m = math.sqrt(max(largest_eigenvalue_2x2(cov_xy), 0.0))
+    # A match looser than the graph's own guess adds little when right and misleads when wrong:
+    # on tuning wings, the closures 0.75 m off had 2.7-4x the chain's σ, the true ones < 0.84x.
+    chain_m = math.sqrt(max(largest_eigenvalue_2x2(chain_cov_xy), 0.0))
     rival = placement.rival_score >= params.ambiguity_ratio * placement.score
-    if rival or loosest_m > params.max_match_sigma_m:
+    if rival or loosest_m > min(params.max_match_sigma_m, params.max_match_to_chain * chain_m):
         return replace(result, reason="ambiguous")
     cov = chain_cov_xy + cov_xy
     if mahalanobis_sq_2x2(d, cov) > params.chi2_gate:
