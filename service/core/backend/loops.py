@@ -332,7 +332,7 @@ def verify(  # noqa: PLR0917 - the query, the candidate and the graph's view of 
     result = replace(result, relative=peak, cov_xy=cov_xy, correction_m=float(np.hypot(*d)))
     loosest_m = math.sqrt(max(largest_eigenvalue_2x2(cov_xy), 0.0))
     # A match looser than the graph's own guess adds little when right and misleads when wrong:
-    # on tuning wings, the closures 0.75 m off had 2.7-4x the chain's σ, the true ones < 0.84x.
+    # on tuning wings the closures 0.75 m off had 2.6-4 × the chain's σ, true ones ≤ 0.83 ×.
     chain_m = math.sqrt(max(largest_eigenvalue_2x2(chain_cov_xy), 0.0))
     rival = placement.rival_score >= params.ambiguity_ratio * placement.score
     if rival or loosest_m > min(params.max_match_sigma_m, params.max_match_to_chain * chain_m):
