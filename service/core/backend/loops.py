@@ -291,8 +291,13 @@ def response_cov(field: LikelihoodField, placement: Placement, params: LoopParam
     return np.array([[cxx + floor, cxy], [cxy, cyy + floor]])
 
 
+def _loosest_sigma_m(cov_xy: FloatArray) -> float:
+    """σ along the loosest axis of a 2×2 covariance."""
+    return math.sqrt(max(largest_eigenvalue_2x2(cov_xy), 0.0))
+
+
 def window_m(chain_cov_xy: FloatArray, params: LoopParams) -> float:
-    sigma = math.sqrt(max(largest_eigenvalue_2x2(chain_cov_xy), 0.0))
+    sigma = _loosest_sigma_m(chain_cov_xy)
     return min(max(params.window_sigmas * sigma, params.window_min_m), params.window_max_m)
 
 
@@ -330,10 +335,10 @@ def verify(  # noqa: PLR0917 - the query, the candidate and the graph's view of 
     cov_xy = response_cov(field, placement, params)
     d = np.array([peak.x_m - guess.x_m, peak.y_m - guess.y_m])
     result = replace(result, relative=peak, cov_xy=cov_xy, correction_m=float(np.hypot(*d)))
-    loosest_m = math.sqrt(max(largest_eigenvalue_2x2(cov_xy), 0.0))
+    loosest_m = _loosest_sigma_m(cov_xy)
     # A match looser than the graph's own guess adds little when right and misleads when wrong:
     # on tuning wings the closures 0.75 m off had 2.6-4 × the chain's σ, true ones ≤ 0.83 ×.
-    chain_m = math.sqrt(max(largest_eigenvalue_2x2(chain_cov_xy), 0.0))
+    chain_m = _loosest_sigma_m(chain_cov_xy)
     rival = placement.rival_score >= params.ambiguity_ratio * placement.score
     if rival or loosest_m > min(params.max_match_sigma_m, params.max_match_to_chain * chain_m):
         return replace(result, reason="ambiguous")
