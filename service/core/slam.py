@@ -21,6 +21,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -30,7 +31,7 @@ from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
 from service.core.frontend.estimator import ManhattanEstimator
 from service.core.frontend.params import EstimatorParams
 from service.core.maps.composed import ChunkedMap
-from service.core.maps.submaps import SubmapBuilder, SubmapParams
+from service.core.maps.submaps import Submap, SubmapBuilder, SubmapParams
 from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate, frozen_array
 
 _NOT_ANCHORED = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
@@ -61,6 +62,39 @@ class LoopStats:
     recent_rejected: deque[LoopResult] = field(default_factory=lambda: deque(maxlen=256))
 
 
+class _SubmapNodeIndex:
+    """Every finished submap's node positions (anchor frames), in one array, so that a query's
+    distance to all of them is one vectorised pass. A cache: never saved, rebuilt on demand.
+
+    Submaps finish in the order they start (each holds a fixed number of nodes), so the
+    finished ones are a prefix of the builder's list: `indexed` of them are in here.
+    """
+
+    def __init__(self) -> None:
+        self.indexed = 0
+        self.sub_index: list[int] = []  # per segment: its submap
+        self.anchor_node: list[int] = []
+        self.last_node = np.zeros(0, dtype=np.int64)
+        self.starts = np.zeros(0, dtype=np.int64)  # per segment: its first row in `xy_m`
+        self.lengths = np.zeros(0, dtype=np.int64)
+        self.xy_m = np.zeros((0, 2))
+
+    def extend(self, submaps: Sequence[Submap]) -> None:
+        new = []
+        while self.indexed < len(submaps) and submaps[self.indexed].finished:
+            new.append(submaps[self.indexed])
+            self.indexed += 1
+        new = [sub for sub in new if sub.node_xy_m]  # (a submap without nodes is never near)
+        if not new:
+            return
+        self.sub_index += [sub.index for sub in new]
+        self.anchor_node += [sub.anchor_node for sub in new]
+        self.last_node = np.concatenate([self.last_node, [sub.nodes[-1] for sub in new]])
+        self.lengths = np.concatenate([self.lengths, [len(sub.node_xy_m) for sub in new]])
+        self.starts = np.concatenate([[0], np.cumsum(self.lengths)[:-1]]).astype(np.int64)
+        self.xy_m = np.concatenate([self.xy_m, *(np.asarray(sub.node_xy_m) for sub in new)])
+
+
 class SlamBackend:
     """The back end alone: nodes, submaps, loop search, pose graph (pure computation, no IO).
 
@@ -82,6 +116,16 @@ class SlamBackend:
         self._last_closure_node = -1
         self._optimised: list[Pose2D] | None = None
         self.chunks = ChunkedMap(map_resolution_m) if map_resolution_m is not None else None
+        self._near = _SubmapNodeIndex()
+
+    def __getstate__(self) -> dict[str, object]:
+        state = dict(self.__dict__)
+        del state["_near"]  # a cache of the submaps
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._near = _SubmapNodeIndex()
 
     @property
     def node_count(self) -> int:
@@ -153,23 +197,42 @@ class SlamBackend:
                 return since
         return full
 
+    def _near_submaps(self, query: int, est_q: Pose2D) -> list[tuple[int, int, float]]:
+        """(submap, anchor node, distance), in submap order, of each finished submap at least
+        `min_node_gap` nodes older than `query` with a node within the widest window
+        (`base_radius_m + window_max_m`) of where the graph puts the query.
+
+        Nearness to where the robot was, not to what it saw (walls 30 m away).
+        """
+        p = self.params.loops
+        near = self._near
+        near.extend(self.submaps.submaps)
+        eligible = np.flatnonzero(near.last_node <= query - p.min_node_gap)
+        if eligible.size == 0:
+            return []
+        # The query in each anchor's frame, by the same scalar arithmetic as everywhere else.
+        qx, qy = np.zeros(len(near.anchor_node)), np.zeros(len(near.anchor_node))
+        for k in eligible:
+            qx[k], qy[k], _ = self.graph.estimate(near.anchor_node[k]).between(est_q)
+        x_m, y_m = near.xy_m[:, 0], near.xy_m[:, 1]
+        node_dist = np.hypot(x_m - np.repeat(qx, near.lengths), y_m - np.repeat(qy, near.lengths))
+        dist = np.minimum.reduceat(node_dist, near.starts)
+        reach_m = p.base_radius_m + p.window_max_m  # `window_m` is at most `window_max_m`
+        return [
+            (near.sub_index[k], near.anchor_node[k], float(dist[k]))
+            for k in eligible
+            if dist[k] <= reach_m
+        ]
+
     def _search(self, query: int) -> None:
         p = self.params.loops
         points = self.node_points[query]
         est_q = self.graph.estimate(query)
         candidates: list[tuple[float, int, FloatArray]] = []
-        for sub in self.submaps.submaps:
-            if not sub.finished or sub.nodes[-1] > query - p.min_node_gap:
-                continue
-            # Nearness to where the robot was, not to what it saw (walls 30 m away).
-            q_in_a = self.graph.estimate(sub.anchor_node).between(est_q)
-            xy = np.asarray(sub.node_xy_m)
-            dist = float(np.min(np.hypot(xy[:, 0] - q_in_a.x_m, xy[:, 1] - q_in_a.y_m)))
-            if dist > p.base_radius_m + p.window_max_m:
-                continue  # beyond any window (`window_m` is at most `window_max_m`): exact
-            cov = self._chain_cov(sub.anchor_node, query)
+        for sub_index, anchor, dist in self._near_submaps(query, est_q):
+            cov = self._chain_cov(anchor, query)
             if dist <= p.base_radius_m + window_m(cov, p):
-                candidates.append((dist, sub.index, cov))
+                candidates.append((dist, sub_index, cov))
         candidates.sort(key=lambda c: c[0])
         for _, index, cov_map in candidates[: p.max_candidates]:
             sub = self.submaps.submaps[index]

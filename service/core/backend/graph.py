@@ -90,6 +90,9 @@ class PoseGraph:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._estimate: gtsam.Values | None = None
+        # `estimate` per node, read from `_estimate` (gtsam's lookup costs ~12 µs; the loop
+        # search asks for every submap's anchor at every query). Cleared with `_estimate`.
+        self._estimate_memo: dict[int, Pose2D] = {}
         self._count = 0
         # Every factor as plain data (kind, numbers), so the graph can be saved without gtsam
         # objects (`__getstate__`) and rebuilt (`__setstate__`).
@@ -229,6 +232,7 @@ class PoseGraph:
         self._new_factors = gtsam.NonlinearFactorGraph()
         self._new_values = gtsam.Values()
         self._estimate = None
+        self._estimate_memo.clear()
 
     def _restart_isam(self) -> None:
         """A new iSAM2 (QR) with every factor, linearised at the last estimate (new nodes at
@@ -249,12 +253,18 @@ class PoseGraph:
 
     def estimate(self, node: int) -> Pose2D:
         """The current estimate of a node (after `update`; else its first guess)."""
+        memo = self._estimate_memo.get(node)
+        if memo is not None:
+            return memo
         if self._estimate is None and self._isam.size() > 0:
             self._estimate = self._isam.calculateEstimate()
         values = self._estimate
         if values is not None and values.exists(_key(node)):
-            return _to_pose(values.atPose2(_key(node)))
-        return _to_pose(self.initial.atPose2(_key(node)))
+            pose = _to_pose(values.atPose2(_key(node)))
+        else:
+            pose = _to_pose(self.initial.atPose2(_key(node)))
+        self._estimate_memo[node] = pose
+        return pose
 
     def estimates(self) -> list[Pose2D]:
         return [self.estimate(i) for i in range(self._count)]
@@ -273,4 +283,5 @@ class PoseGraph:
         lm.setMaxIterations(self.params.batch_max_iterations)
         result = gtsam.LevenbergMarquardtOptimizer(graph, start, lm).optimize()
         self._estimate = result
+        self._estimate_memo.clear()
         return [_to_pose(result.atPose2(_key(i))) for i in range(self._count)]

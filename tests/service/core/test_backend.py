@@ -387,6 +387,48 @@ def test_the_last_node_searches_for_its_loop_at_the_end_of_an_offline_run(
     assert any(c.query_node == nodes - 1 for c in closures)
 
 
+def test_the_vectorised_submap_nearness_is_the_submap_by_submap_one(
+    world8_keyframes: tuple[list[tuple[LaserScan, Any]], list[Pose2D]],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """The loop search's candidates come from one vectorised pass over every submap's nodes
+    (`SlamBackend._near_submaps`), an index that a checkpoint drops and rebuilds: at every query
+    it returns what the plain loop over the submaps returns, bit for bit."""
+    from service.core.slam import SlamBackend, SlamParams
+
+    keyframes, _ = world8_keyframes
+    backend = SlamBackend(SlamParams())
+    half = len(keyframes) // 2
+    for laser, estimate in keyframes[:half]:
+        backend.add_node(laser, estimate.pose, estimate.covariance, int(estimate.flags))
+    backend = pickle.loads(pickle.dumps(backend))  # as a checkpoint restores it
+    vectorised = backend._near_submaps
+    p = backend.params.loops
+    near_counts = []
+
+    def checked(query: int, est_q: Pose2D) -> list[tuple[int, int, float]]:
+        want = []
+        for sub in backend.submaps.submaps:
+            if not sub.finished or sub.nodes[-1] > query - p.min_node_gap:
+                continue
+            q_in_a = backend.graph.estimate(sub.anchor_node).between(est_q)
+            xy = np.asarray(sub.node_xy_m)
+            dist = float(np.min(np.hypot(xy[:, 0] - q_in_a.x_m, xy[:, 1] - q_in_a.y_m)))
+            if dist <= p.base_radius_m + p.window_max_m:
+                want.append((sub.index, sub.anchor_node, dist))
+        got = vectorised(query, est_q)
+        assert got == want
+        near_counts.append(len(got))
+        return got
+
+    monkeypatch.setattr(backend, "_near_submaps", checked)
+    for laser, estimate in keyframes[half:]:
+        backend.add_node(laser, estimate.pose, estimate.covariance, int(estimate.flags))
+    backend.finish()
+    assert sum(near_counts) > 0  # the loop's end was near its start
+    assert backend.stats.accepted > 0
+
+
 def test_a_submap_saved_with_its_field_by_an_older_version_still_loads() -> None:
     rng = np.random.default_rng(4)
     world = _world(_room(0.0), 8.0, 6.0)
