@@ -58,6 +58,7 @@ from service.app.errors import (
     NotFoundError,
     StoreError,
     UnavailableError,
+    restoring_error,
 )
 from service.app.mapper import (
     Done,
@@ -257,7 +258,7 @@ class MappingSession:
     def _ready(self) -> Mapper:
         """The mapper, for requests that need the restored state (lock held); 503 otherwise."""
         if self._restoring:
-            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
+            raise restoring_error(self.id)
         if self._broken:
             raise ConflictError(f"session {self.id} has damaged files (see mapping-service fsck)")
         if self._lost:
@@ -927,6 +928,15 @@ class MappingSession:
                 return None
             return self._corrected([self._poses[-1]])[0]
 
+    def pose_for_read(self) -> Pose | None:
+        """`last_pose` for `GET .../pose`: a session still restoring is a 503 to retry, not a
+        session without a pose (None)."""
+        with self.lock:
+            self._ready_for_reads()
+            if not self._poses:
+                return None
+            return self._corrected([self._poses[-1]])[0]
+
     def trajectory(self) -> list[Pose]:
         """Every pose, corrected by the latest graph (each by its latest node's correction)."""
         with self.lock:
@@ -1041,13 +1051,13 @@ class MappingSession:
 
     def _ready_for_reads(self) -> None:
         if self._restoring:
-            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
+            raise restoring_error(self.id)
 
     def _image(self) -> Any:
         """The grid snapshot, cached per map revision (lock held): the live page polls the
         map several times a second while it only changes at keyframes."""
         if self._restoring or self._mapper is None:
-            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
+            raise restoring_error(self.id)
         if self._lost:
             self._recover()
         self._graph_snapshot()  # a map drawn since the last scan bumps the revision
@@ -1325,7 +1335,7 @@ class SessionManager:
         returns the saved map versions deleted."""
         session = self.get(session_id)
         if session.status == "restoring":
-            raise UnavailableError(f"session {session.id} is restoring; retry in a few seconds")
+            raise restoring_error(session.id)
         with self._lock:
             self._sessions.pop(session.id, None)
             if self._active.get(session.robot_id) == session.id:

@@ -226,7 +226,13 @@ def test_http_answers_while_sessions_restore(
             assert health["status"] == "restoring"
             assert health["sessions_restoring"] == 1
             assert client.get(f"/sessions/{session.id}").json()["status"] == "restoring"
+            # Its pose is not "none yet" (409) but "not yet restored": 503, come back later.
+            pose = client.get(f"/sessions/{session.id}/pose")
+            assert (pose.status_code, pose.json()["code"]) == (503, "unavailable"), pose.text
+            assert "restoring" in pose.json()["detail"]
+            assert int(pose.headers["retry-after"]) >= 1
             assert client.get(f"/sessions/{session.id}/map.png").status_code == 503
+            assert "retry-after" in client.get(f"/sessions/{session.id}/trajectory").headers
             assert client.post(f"/sessions/{session.id}/stop").status_code == 503
             assert client.delete(f"/sessions/{session.id}").status_code == 503
             # Scans arriving meanwhile wait, and are mapped once the replay is done.
