@@ -518,10 +518,10 @@ class MappingSession:
 
     # -- checkpoints ------------------------------------------------------------------------
 
-    def _write_checkpoint(self) -> None:
+    def _write_checkpoint(self) -> bool:
         """Persist estimator and grid (lock held) and start a new recording segment. The
         recording is fsynced first so that a checkpoint never covers records a power loss
-        could take back."""
+        could take back. False if it could not be written (logged)."""
         assert self._mapper is not None
         try:
             # Frozen arrays go to the epoch's pack once (fsynced before this returns), so a
@@ -539,10 +539,13 @@ class MappingSession:
             self._ckpt_segment = segment
             self._records_tail = 0
             self._drop_old_checkpoints(segment)
+            written = True
         except (OSError, MapperError, ValueError, TypeError) as err:
             log.warning("session %s: checkpoint not written: %s", self.id, err)
+            written = False
         self._checkpoint_scans = self.scans_accepted
         self._checkpoint_due = False
+        return written
 
     def _drop_old_checkpoints(self, newest: int) -> None:
         """Keep the newest checkpoint and the newest other one that passes its checksum (the
@@ -866,7 +869,8 @@ class MappingSession:
                 return 0
             return self._store.prune(older_than_s, below)
 
-    def close(self) -> None:
+    def close(self) -> bool:
+        """Release everything; True if a checkpoint was written (scans since the last one)."""
         self._cancel.set()
         if not self._restoring:
             # Shutdown lets the back end take in the nodes it was handed (seconds at most), so
@@ -875,16 +879,19 @@ class MappingSession:
         with self.lock:
             with contextlib.suppress(MapperError):  # a process gone: the recording stays
                 self._revoke(recover=False)
+            checkpointed = False
             if self.is_active and not self._restoring and not self._lost:
-                self._checkpoint_if_behind()
+                checkpointed = self._checkpoint_if_behind()
             self._store.close_writer()
             if self._mapper is not None:
                 self._mapper.close()
+        return checkpointed
 
-    def _checkpoint_if_behind(self) -> None:
+    def _checkpoint_if_behind(self) -> bool:
         """A checkpoint at a clean stop or shutdown makes the next start instant (lock held)."""
         if self.scans_accepted > self._checkpoint_scans:
-            self._write_checkpoint()
+            return self._write_checkpoint()
+        return False
 
     # -- reads ----------------------------------------------------------------------------
 
@@ -1393,16 +1400,20 @@ class SessionManager:
                 log.error("pruning session %s failed: %s", session.id, err)
         return freed
 
-    def close(self) -> None:
+    def close(self) -> tuple[int, int]:
+        """Close every session: (sessions closed, checkpoints written), for the shutdown log."""
         for session in self.list():
             session.cancel_restore()
         if self._restore_thread is not None:
             self._restore_thread.join(timeout=30)
+        closed = checkpoints = 0
         for session in self.list():
             try:
-                session.close()
+                checkpoints += session.close()
+                closed += 1
             except OSError as err:
                 log.error("closing session %s failed: %s", session.id, err)
+        return closed, checkpoints
 
 
 def _create_error(err: OSError) -> Exception:
