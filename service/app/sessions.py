@@ -84,6 +84,7 @@ from service.app.store import (
     new_session_id,
     parse_segment,
     read_meta,
+    read_repairs,
     write_atomic,
 )
 
@@ -742,6 +743,7 @@ class MappingSession:
                 bytes_lost=self._damage.bytes_lost + total.bytes_lost,
                 regions=self._damage.regions + len(total.damage),
             )
+        self._count_fsck_repairs()
         tail_repaired = False
         if pending is not None:
             # Crash between a scan's record and its pose's: the pose is recomputed and,
@@ -765,6 +767,30 @@ class MappingSession:
                 mismatches,
                 undecodable,
             )
+
+    def _count_fsck_repairs(self) -> None:
+        """Records `fsck --repair` cut out of this epoch's recording count as lost: the
+        rewritten segments read as intact, yet the map lacks those scans."""
+        epoch = self._store.meta.epoch
+        repairs = [
+            r
+            for r in read_repairs(self._store.directory)
+            if (parsed := parse_segment(r.segment)) is not None and parsed[0] == epoch
+        ]
+        if not repairs:
+            return
+        lost = sum(r.records_lost for r in repairs)
+        segments = ", ".join(r.segment for r in repairs)
+        self._damage = replace(
+            self._damage,
+            records_lost=self._damage.records_lost + lost,
+            bytes_lost=self._damage.bytes_lost + sum(r.bytes_lost for r in repairs),
+            regions=self._damage.regions + sum(r.regions for r in repairs),
+            notes=(
+                *self._damage.notes,
+                f"fsck --repair cut {lost} damaged record(s) out of {segments}",
+            ),
+        )
 
     def _segment_records(self, seg: Segment, report: RecordingReport) -> Iterator[RawRecord]:
         """The segment's intact records; a file that is not a recording at all (its header is

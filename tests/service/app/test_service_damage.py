@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import logging
 import os
 import pickle
@@ -595,14 +596,25 @@ def test_fsck_reports_and_repairs_without_guessing(
     assert recording.read_bytes() == bytes(raw)  # nothing written without --repair
 
     shutil.rmtree(broken)
+    found = json.loads(fsck(str(data), "--json").stdout)
+    (problem,) = [f["problem"] for f in found[0]["findings"] if f["file"] == recording.name]
     repaired = fsck(str(data), "--repair")
     assert repaired.returncode == 3, repaired.stdout + repaired.stderr
     (backup,) = folder.glob(f"{recording.name}.bak-*")
     assert backup.read_bytes() == bytes(raw)
     assert (folder / f"{checkpoint.name}.rejected").exists()
-    assert fsck(str(data)).returncode == 0
+    after = fsck(str(data))
+    assert after.returncode == 0
+    assert "an earlier repair cut" in after.stdout
+    # What remains is intact, but records were lost: the session says so, with the counts
+    # fsck found (it used to say `ok`, as if nothing had happened).
     again = runtime_factory(data).sessions.get(session.id)
-    assert again.status == "ok"  # what remains is intact; the loss was reported by fsck
+    assert again.status == "degraded"
+    damage = again.damage
+    assert damage.records_lost >= 1
+    assert damage.regions == 1
+    assert f"{damage.records_lost} record(s) and {damage.bytes_lost} bytes lost" in problem
+    assert any("fsck --repair cut" in note for note in damage.notes), damage.notes
     assert fsck("--help").returncode == 0
 
 
