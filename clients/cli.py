@@ -228,7 +228,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with MappingClient(args.server, token=token, timeout_s=args.timeout) as client:
             return int(_COMMANDS[args.command](client, args, sys.stdout))
     except MappingError as err:
-        return _report(err, args.server)
+        return _report(err, args.server, token_given=token is not None)
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
     except BrokenPipeError:
@@ -246,7 +246,7 @@ def _err(message: str) -> None:
     sys.stderr.write(f"mapctl: {message}\n")
 
 
-def _report(err: MappingError, server: str) -> int:
+def _report(err: MappingError, server: str, *, token_given: bool = False) -> int:
     if isinstance(err, MappingConnectionError):
         _err(err.reason)
         return EXIT_UNAVAILABLE
@@ -254,6 +254,13 @@ def _report(err: MappingError, server: str) -> int:
         _err(f"unexpected answer from {server}: {err.reason}")
         return EXIT_UNAVAILABLE
     status = err.status
+    if status == 401 and not token_given:
+        # The service's reason names the HTTP header; a CLI user needs mapctl's own options.
+        _err(
+            f"{server} needs a token for this (HTTP 401): pass it with --token-file FILE "
+            "(or env MAPPING_TOKEN_FILE, or MAPPING_TOKEN)"
+        )
+        return EXIT_REFUSED
     _err(f"{err.reason} (HTTP {status})")
     if status is not None and 400 <= status < 500:
         return EXIT_REFUSED

@@ -1,4 +1,5 @@
-"""The agent loop: one source feeding one publisher, with a periodic one-line summary."""
+"""The agent loop: one source feeding one publisher, with a periodic one-line summary (while
+a subscriber matches; otherwise one line says that none does)."""
 
 from __future__ import annotations
 
@@ -50,7 +51,12 @@ class Agent:
         if self.stats_interval_s <= 0:
             return
         while not done.wait(self.stats_interval_s):
-            log.info("%s", self.summary())
+            line = self.summary()  # also restarts the rate's window
+            if not self.publisher.has_subscriber:
+                # `published=` counting up while nobody listens reads as success: say so, once.
+                self.publisher.tell_unmatched()
+                continue
+            log.info("%s", line)
 
     def summary(self) -> str:
         """One line: rate, published, dropped, queue depth, then the source's counters."""

@@ -14,6 +14,9 @@ burst after a Wi-Fi hiccup). Blocking is confined to the worker thread; the sour
 port) never waits for the network. If the network stays stalled long enough for the bounded
 queue (2 s of scans by default) to fill, new scans are dropped *there*, counted and logged;
 they have already consumed a sequence number, so subscribers see the gap.
+
+Zenoh tells the publisher whether any subscriber matches its key (a matching listener): a put
+nobody matches goes nowhere, so that state is logged when it changes (`has_subscriber`).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass
-from typing import Final
+from typing import Any, Final
 
 import zenoh
 
@@ -84,6 +87,18 @@ class ScanPublisher:
         )
         # Unstable API in zenoh-python 1.x: without it, scans go out without a source id.
         self._source_id: zenoh.EntityGlobalId | None = getattr(self._publisher, "id", None)
+        # Whether a subscriber matches (the service, a recorder): the listener reports each
+        # change; the state at start is read once, unless a change came first.
+        self._match_lock = threading.Lock()
+        self._matching: bool | None = None
+        self._told_unmatched = False
+        self._matching_listener = self._publisher.declare_matching_listener(self._on_matching)
+        # The stubs say bool; zenoh 1.10 returns a MatchingStatus: take either.
+        status: Any = self._publisher.matching_status
+        initial = bool(getattr(status, "matching", status))
+        with self._match_lock:
+            if self._matching is None:
+                self._matching = initial
         self._queue: queue.Queue[Scan | _Stop] = queue.Queue(maxsize=queue_scans)
         self._seq = 0
         self._last_drop_log = 0.0
@@ -101,6 +116,42 @@ class ScanPublisher:
     @property
     def queue_depth(self) -> int:
         return self._queue.qsize()
+
+    @property
+    def has_subscriber(self) -> bool:
+        """Whether a subscriber on the network matches this publisher's key."""
+        with self._match_lock:
+            return bool(self._matching)
+
+    def tell_unmatched(self) -> None:
+        """Log once (until a subscriber appears) that no subscriber matches."""
+        with self._match_lock:
+            if self._matching or self._told_unmatched:
+                return
+            self._told_unmatched = True
+        log.warning(
+            "no subscriber matches %s: scans go to nobody (%d published so far); "
+            "is the service running and connected?",
+            self.key,
+            self.counters.published,
+        )
+
+    def _on_matching(self, status: zenoh.MatchingStatus) -> None:
+        """Zenoh's callback thread: log the change (no Zenoh call in here)."""
+        matching = bool(status.matching)
+        with self._match_lock:
+            changed = matching != self._matching
+            self._matching = matching
+            if matching:
+                self._told_unmatched = False
+            elif changed:
+                self._told_unmatched = True  # told here: the summary does not repeat it
+        if not changed:
+            return
+        if matching:
+            log.info("a subscriber matches %s: scans are received", self.key)
+        else:
+            log.warning("no subscriber matches %s any more: scans go to nobody", self.key)
 
     def submit(self, scan: Scan) -> bool:
         """Number and queue `scan` (never blocks). False if it had to be dropped."""
@@ -166,6 +217,7 @@ class ScanPublisher:
             log.warning("publisher thread did not finish within %.1f s", timeout_s)
         try:
             self._token.undeclare()  # type: ignore[no-untyped-call]  # untyped in zenoh's stubs
+            self._matching_listener.undeclare()  # type: ignore[no-untyped-call]
             self._publisher_token.undeclare()  # type: ignore[no-untyped-call]
             self._publisher.undeclare()  # type: ignore[no-untyped-call]
         except zenoh.ZError as err:  # session already closed

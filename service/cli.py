@@ -7,6 +7,7 @@ import importlib
 import logging
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from clients.keyexpr import DEFAULT_PREFIX
 
@@ -54,7 +55,21 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    p_map = sub.add_parser(
+    def add_command(name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        # `-v` after the command too (`serve -v`, as the docs show it): its own dest, because a
+        # subparser's default would overwrite the count given before the command.
+        p = sub.add_parser(name, **kwargs)
+        p.add_argument(
+            "-v",
+            "--verbose",
+            dest="verbose_after",
+            action="count",
+            default=0,
+            help="more log output (-vv: debug)",
+        )
+        return p
+
+    p_map = add_command(
         "map",
         help="map a ROS 1/2 bag, an MCAP file or a recording offline",
         description="Map a ROS 1 bag, a ROS 2 bag (SQLite or MCAP storage), an MCAP file or one "
@@ -84,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_map.add_argument("--no-progress", action="store_true", help="no progress bar")
     p_map.set_defaults(handler="service.offline:run_map")
 
-    p_export = sub.add_parser(
+    p_export = add_command(
         "export",
         help="write a session or a recording as MCAP (ROS 2 messages)",
         description="Write a session's recording (or a .mrec file) as MCAP with ROS 2 schemas: "
@@ -103,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_export.set_defaults(handler="service.export:run_export")
 
-    p_serve = sub.add_parser(
+    p_serve = add_command(
         "serve",
         help="run the mapping service (Zenoh ingest + HTTP API)",
         description="Subscribe to robot scans over Zenoh, map them per session, serve HTTP.",
@@ -205,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_zenoh_args(p_serve)
     p_serve.set_defaults(handler="service.app.main:run_serve")
 
-    p_fsck = sub.add_parser(
+    p_fsck = add_command(
         "fsck",
         help="check a data directory for damaged sessions (and repair what is provable)",
         description=(
@@ -226,7 +241,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_fsck.add_argument("--json", action="store_true", help="print the report as JSON")
     p_fsck.set_defaults(handler="service.fsck:run_fsck")
 
-    p_demo = sub.add_parser(
+    p_demo = add_command(
         "demo",
         help="service + simulated UTM-30LX robot; open the printed URL",
         description=(
@@ -277,6 +292,7 @@ def configure_logging(verbosity: int) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    args.verbose += args.verbose_after  # `-v serve -v` counts both
     configure_logging(args.verbose if args.command != "demo" else max(args.verbose, 1))
     module_name, func_name = args.handler.split(":")
     handler = getattr(importlib.import_module(module_name), func_name)

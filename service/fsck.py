@@ -38,11 +38,15 @@ from service.app import checkpoint as ckpt
 from service.app import statecodec
 from service.app.errors import StoreError
 from service.app.store import (
+    FSCK_REPAIRS,
     LEGACY_CHECKPOINT,
+    RecordingRepair,
     parse_checkpoint,
     parse_pack,
     parse_segment,
     read_meta,
+    read_repairs,
+    record_repair,
 )
 
 log = logging.getLogger(__name__)
@@ -90,6 +94,9 @@ def check_session(directory: Path, *, repair: bool) -> SessionReport:
             _check_pack(path, report)
         elif path.name == LEGACY_CHECKPOINT:
             report.notes.append(f"{path.name}: old pickle checkpoint, never loaded (replayed)")
+        elif path.name == FSCK_REPAIRS:
+            lost = sum(r.records_lost for r in read_repairs(directory))
+            report.notes.append(f"{path.name}: an earlier repair cut {lost} damaged record(s)")
         elif ".damaged" in path.name or ".bak-" in path.name or path.name.endswith(".rejected"):
             report.notes.append(f"{path.name}: kept copy of damaged data")
     return report
@@ -117,12 +124,25 @@ def _check_segment(path: Path, report: SessionReport, *, repair: bool) -> None:
     )
     report.findings.append(finding)
     if repair:
-        _rewrite_intact(path)
+        backup = _rewrite_intact(path)
+        # Remembered for the service: the rewritten segment alone looks intact, and a session
+        # that lost records must still say `degraded`, with the counts.
+        record_repair(
+            path.parent,
+            RecordingRepair(
+                segment=path.name,
+                records_lost=rec.records_lost,
+                bytes_lost=rec.bytes_lost,
+                regions=len(rec.damage),
+                backup=backup.name,
+                repaired_unix_s=int(time.time()),
+            ),
+        )
         finding.repaired = True
 
 
-def _rewrite_intact(path: Path) -> None:
-    """Replace `path` with its intact records only; the original stays as a backup."""
+def _rewrite_intact(path: Path) -> Path:
+    """Replace `path` with its intact records only; the original stays as a backup (returned)."""
     tmp = path.with_name(f".{path.name}.fsck.tmp")
     with RecordingWriter(tmp) as writer:
         for record in iter_raw_records(path, RecordingReport()):  # reported already
@@ -132,6 +152,7 @@ def _rewrite_intact(path: Path) -> None:
     os.link(path, backup)  # the original bytes, under a name the service ignores
     os.replace(tmp, path)
     _fsync_dir(path.parent)
+    return backup
 
 
 def _check_checkpoint(path: Path, report: SessionReport, *, repair: bool) -> None:

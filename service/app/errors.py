@@ -69,7 +69,26 @@ class TransportError(ServiceError):
 
 
 class UnavailableError(ServiceError):
-    """Not now: the resource is restoring, or the service is at a resource limit (503)."""
+    """Not now: the resource is restoring, or the service is at a resource limit (503).
+    `retry_after_s`, when known, is sent as `Retry-After`."""
 
     status = 503
     default_code = "unavailable"
+
+    def __init__(
+        self, reason: str, code: str | None = None, *, retry_after_s: int | None = None
+    ) -> None:
+        super().__init__(reason, code)
+        self.retry_after_s = retry_after_s
+
+
+# A replay takes seconds (docs/service.md): clients asked to come back after this.
+RESTORE_RETRY_AFTER_S = 2
+
+
+def restoring_error(session_id: str) -> UnavailableError:
+    """503 for a session that is still being replayed after a restart."""
+    return UnavailableError(
+        f"session {session_id} is restoring after a restart; retry in a few seconds",
+        retry_after_s=RESTORE_RETRY_AFTER_S,
+    )

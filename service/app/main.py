@@ -44,6 +44,8 @@ class _Server(uvicorn.Server):
         self._runtime = runtime
 
     def handle_exit(self, sig: int, frame: FrameType | None) -> None:
+        if not self.should_exit:  # a second signal forces uvicorn's exit: said once
+            log.info("%s: shutting down (HTTP first, then the sessions)", signal.Signals(sig).name)
         self._runtime.fanout.end_streams_threadsafe()
         super().handle_exit(sig, frame)
 

@@ -58,6 +58,7 @@ from service.app.errors import (
     NotFoundError,
     StoreError,
     UnavailableError,
+    restoring_error,
 )
 from service.app.mapper import (
     Done,
@@ -83,6 +84,7 @@ from service.app.store import (
     new_session_id,
     parse_segment,
     read_meta,
+    read_repairs,
     write_atomic,
 )
 
@@ -257,7 +259,7 @@ class MappingSession:
     def _ready(self) -> Mapper:
         """The mapper, for requests that need the restored state (lock held); 503 otherwise."""
         if self._restoring:
-            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
+            raise restoring_error(self.id)
         if self._broken:
             raise ConflictError(f"session {self.id} has damaged files (see mapping-service fsck)")
         if self._lost:
@@ -517,10 +519,10 @@ class MappingSession:
 
     # -- checkpoints ------------------------------------------------------------------------
 
-    def _write_checkpoint(self) -> None:
+    def _write_checkpoint(self) -> bool:
         """Persist estimator and grid (lock held) and start a new recording segment. The
         recording is fsynced first so that a checkpoint never covers records a power loss
-        could take back."""
+        could take back. False if it could not be written (logged)."""
         assert self._mapper is not None
         try:
             # Frozen arrays go to the epoch's pack once (fsynced before this returns), so a
@@ -538,10 +540,13 @@ class MappingSession:
             self._ckpt_segment = segment
             self._records_tail = 0
             self._drop_old_checkpoints(segment)
+            written = True
         except (OSError, MapperError, ValueError, TypeError) as err:
             log.warning("session %s: checkpoint not written: %s", self.id, err)
+            written = False
         self._checkpoint_scans = self.scans_accepted
         self._checkpoint_due = False
+        return written
 
     def _drop_old_checkpoints(self, newest: int) -> None:
         """Keep the newest checkpoint and the newest other one that passes its checksum (the
@@ -738,6 +743,7 @@ class MappingSession:
                 bytes_lost=self._damage.bytes_lost + total.bytes_lost,
                 regions=self._damage.regions + len(total.damage),
             )
+        self._count_fsck_repairs()
         tail_repaired = False
         if pending is not None:
             # Crash between a scan's record and its pose's: the pose is recomputed and,
@@ -761,6 +767,30 @@ class MappingSession:
                 mismatches,
                 undecodable,
             )
+
+    def _count_fsck_repairs(self) -> None:
+        """Records `fsck --repair` cut out of this epoch's recording count as lost: the
+        rewritten segments read as intact, yet the map lacks those scans."""
+        epoch = self._store.meta.epoch
+        repairs = [
+            r
+            for r in read_repairs(self._store.directory)
+            if (parsed := parse_segment(r.segment)) is not None and parsed[0] == epoch
+        ]
+        if not repairs:
+            return
+        lost = sum(r.records_lost for r in repairs)
+        segments = ", ".join(r.segment for r in repairs)
+        self._damage = replace(
+            self._damage,
+            records_lost=self._damage.records_lost + lost,
+            bytes_lost=self._damage.bytes_lost + sum(r.bytes_lost for r in repairs),
+            regions=self._damage.regions + sum(r.regions for r in repairs),
+            notes=(
+                *self._damage.notes,
+                f"fsck --repair cut {lost} damaged record(s) out of {segments}",
+            ),
+        )
 
     def _segment_records(self, seg: Segment, report: RecordingReport) -> Iterator[RawRecord]:
         """The segment's intact records; a file that is not a recording at all (its header is
@@ -865,7 +895,8 @@ class MappingSession:
                 return 0
             return self._store.prune(older_than_s, below)
 
-    def close(self) -> None:
+    def close(self) -> bool:
+        """Release everything; True if a checkpoint was written (scans since the last one)."""
         self._cancel.set()
         if not self._restoring:
             # Shutdown lets the back end take in the nodes it was handed (seconds at most), so
@@ -874,16 +905,19 @@ class MappingSession:
         with self.lock:
             with contextlib.suppress(MapperError):  # a process gone: the recording stays
                 self._revoke(recover=False)
+            checkpointed = False
             if self.is_active and not self._restoring and not self._lost:
-                self._checkpoint_if_behind()
+                checkpointed = self._checkpoint_if_behind()
             self._store.close_writer()
             if self._mapper is not None:
                 self._mapper.close()
+        return checkpointed
 
-    def _checkpoint_if_behind(self) -> None:
+    def _checkpoint_if_behind(self) -> bool:
         """A checkpoint at a clean stop or shutdown makes the next start instant (lock held)."""
         if self.scans_accepted > self._checkpoint_scans:
-            self._write_checkpoint()
+            return self._write_checkpoint()
+        return False
 
     # -- reads ----------------------------------------------------------------------------
 
@@ -924,6 +958,15 @@ class MappingSession:
         """The latest pose, where the back end's graph puts it now."""
         with self.lock:
             if self._restoring or not self._poses:
+                return None
+            return self._corrected([self._poses[-1]])[0]
+
+    def pose_for_read(self) -> Pose | None:
+        """`last_pose` for `GET .../pose`: a session still restoring is a 503 to retry, not a
+        session without a pose (None)."""
+        with self.lock:
+            self._ready_for_reads()
+            if not self._poses:
                 return None
             return self._corrected([self._poses[-1]])[0]
 
@@ -1041,13 +1084,13 @@ class MappingSession:
 
     def _ready_for_reads(self) -> None:
         if self._restoring:
-            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
+            raise restoring_error(self.id)
 
     def _image(self) -> Any:
         """The grid snapshot, cached per map revision (lock held): the live page polls the
         map several times a second while it only changes at keyframes."""
         if self._restoring or self._mapper is None:
-            raise UnavailableError(f"session {self.id} is restoring; retry in a few seconds")
+            raise restoring_error(self.id)
         if self._lost:
             self._recover()
         self._graph_snapshot()  # a map drawn since the last scan bumps the revision
@@ -1325,7 +1368,7 @@ class SessionManager:
         returns the saved map versions deleted."""
         session = self.get(session_id)
         if session.status == "restoring":
-            raise UnavailableError(f"session {session.id} is restoring; retry in a few seconds")
+            raise restoring_error(session.id)
         with self._lock:
             self._sessions.pop(session.id, None)
             if self._active.get(session.robot_id) == session.id:
@@ -1383,16 +1426,20 @@ class SessionManager:
                 log.error("pruning session %s failed: %s", session.id, err)
         return freed
 
-    def close(self) -> None:
+    def close(self) -> tuple[int, int]:
+        """Close every session: (sessions closed, checkpoints written), for the shutdown log."""
         for session in self.list():
             session.cancel_restore()
         if self._restore_thread is not None:
             self._restore_thread.join(timeout=30)
+        closed = checkpoints = 0
         for session in self.list():
             try:
-                session.close()
+                checkpoints += session.close()
+                closed += 1
             except OSError as err:
                 log.error("closing session %s failed: %s", session.id, err)
+        return closed, checkpoints
 
 
 def _create_error(err: OSError) -> Exception:

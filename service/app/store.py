@@ -87,6 +87,42 @@ def write_atomic(path: Path, data: bytes) -> None:
     _fsync_dir(path.parent)
 
 
+# What `mapping-service fsck --repair` cut out of a session's recording: the rewritten segment
+# holds only intact records, so without this note a restore would find nothing wrong.
+FSCK_REPAIRS: Final = "fsck-repairs.json"
+
+
+@dataclass(frozen=True, slots=True)
+class RecordingRepair:
+    """One segment rewritten by fsck with its intact records only."""
+
+    segment: str  # the segment's file name (its epoch is in it)
+    records_lost: int
+    bytes_lost: int
+    regions: int
+    backup: str  # the original's file name, kept beside it
+    repaired_unix_s: int
+
+
+def read_repairs(directory: Path) -> list[RecordingRepair]:
+    """The repairs fsck recorded in a session folder (none if the file is absent or unreadable:
+    a note about past damage must never stop a restore)."""
+    try:
+        entries = json.loads((directory / FSCK_REPAIRS).read_bytes())
+        return [RecordingRepair(**entry) for entry in entries]
+    except FileNotFoundError:
+        return []
+    except (OSError, ValueError, TypeError) as err:
+        log.warning("%s: %s unreadable (%s); ignored", directory.name, FSCK_REPAIRS, err)
+        return []
+
+
+def record_repair(directory: Path, repair: RecordingRepair) -> None:
+    """Add `repair` to the session folder's list (atomically)."""
+    entries = [asdict(r) for r in read_repairs(directory)] + [asdict(repair)]
+    write_atomic(directory / FSCK_REPAIRS, json.dumps(entries, indent=1).encode())
+
+
 @dataclass(frozen=True, slots=True)
 class SessionMeta:
     id: str

@@ -109,6 +109,13 @@ def test_mapctl_end_to_end(live: ServiceProc, tmp_path: Path) -> None:
     assert done.returncode == 1, done.stderr
     assert_one_line_error(done)
     assert "401" in done.stderr
+    # Tells how to pass a token with mapctl, not which HTTP header the service wants.
+    assert "--token-file" in done.stderr
+    assert "MAPPING_TOKEN" in done.stderr
+    assert "Authorization" not in done.stderr
+    done = ctl("--token", "not-the-token", "start", "ctl-1")
+    assert done.returncode == 1
+    assert "wrong token (HTTP 401)" in done.stderr
 
     done = mapctl("--json", "start", "ctl-1", server=url, env=auth)
     assert done.returncode == 0, done.stderr

@@ -106,6 +106,11 @@ class _GatedPublisher:
     def undeclare(self) -> None:
         pass
 
+    matching_status = False  # nobody listens
+
+    def declare_matching_listener(self, callback: Any) -> _GatedPublisher:
+        return _GatedPublisher()
+
 
 class _FakeSession:
     def __init__(self) -> None:

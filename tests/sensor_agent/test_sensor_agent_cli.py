@@ -144,9 +144,12 @@ def test_replay_publishes_every_scan_then_exits_0(short_dir: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.timeout(60)
+@pytest.mark.timeout(90)
 def test_emulate_mode_streams_until_sigterm(short_dir: Path) -> None:
+    """Also: while no subscriber matches, the agent says so once instead of counting
+    `published=` up as if someone listened; it says again when one appears."""
     log_path = short_dir / "agent.log"
+    endpoint = f"unixsock-stream/{short_dir / 'z.sock'}"
     with open(log_path, "wb") as log:
         proc = subprocess.Popen(
             [
@@ -159,7 +162,9 @@ def test_emulate_mode_streams_until_sigterm(short_dir: Path) -> None:
                 "--world-seed",
                 "3",
                 "--stats-interval",
-                "0.5",
+                "0.3",
+                "--zenoh-listen",
+                endpoint,
             ],
             stdout=log,
             stderr=subprocess.STDOUT,
@@ -167,11 +172,23 @@ def test_emulate_mode_streams_until_sigterm(short_dir: Path) -> None:
             cwd=REPO,
         )
     try:
-        deadline = time.monotonic() + 40
-        while "published=" not in log_path.read_text() or " 0.0 Hz" in last_summary(log_path):
-            assert proc.poll() is None, log_path.read_text()
-            assert time.monotonic() < deadline, log_path.read_text()
-            time.sleep(0.1)
+        wait_log(proc, log_path, "no subscriber matches robots/emu-1/scan", 40)
+        time.sleep(1.0)  # three more summary periods: still one line, no counters
+        text = log_path.read_text()
+        assert text.count("no subscriber matches") == 1, text
+        assert "published=" not in text, text
+        with zenoh.open(build_zenoh_config(connect=[endpoint])) as session:
+            received: list[int] = []
+            sub = session.declare_subscriber("robots/*/scan", lambda s: received.append(1))
+            wait_log(proc, log_path, "a subscriber matches robots/emu-1/scan", 20)
+            deadline = time.monotonic() + 40
+            while "published=" not in log_path.read_text() or " 0.0 Hz" in last_summary(log_path):
+                assert proc.poll() is None, log_path.read_text()
+                assert time.monotonic() < deadline, log_path.read_text()
+                time.sleep(0.1)
+            assert received
+            sub.undeclare()
+            wait_log(proc, log_path, "no subscriber matches robots/emu-1/scan any more", 20)
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
     finally:
@@ -182,6 +199,14 @@ def test_emulate_mode_streams_until_sigterm(short_dir: Path) -> None:
     assert "source: emulator (world seed 3)" in text
     assert "SOKUIKI Sensor TOP-URG UTM-30LX" in text
     assert "final:" in text
+
+
+def wait_log(proc: subprocess.Popen[bytes], path: Path, fragment: str, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while fragment not in path.read_text():
+        assert proc.poll() is None, path.read_text()
+        assert time.monotonic() < deadline, f"no {fragment!r} in:\n{path.read_text()}"
+        time.sleep(0.05)
 
 
 def last_summary(path: Path) -> str:

@@ -22,7 +22,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 import service
 from service.app.api import routes_export, routes_maps, routes_sessions, routes_system
 from service.app.api.schemas import ErrorBody
-from service.app.errors import ServiceError, StoreError
+from service.app.errors import ServiceError, StoreError, UnavailableError
 from service.app.runtime import MappingRuntime
 
 log = logging.getLogger(__name__)
@@ -97,6 +97,8 @@ def create_app(runtime: MappingRuntime) -> FastAPI:
         if isinstance(exc, StoreError):
             log.error("%s %s: %s", request.method, request.url.path, exc.reason)
         headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        if isinstance(exc, UnavailableError) and exc.retry_after_s is not None:
+            headers = {"Retry-After": str(exc.retry_after_s)}
         return error_response(exc.status, exc.reason, exc.code, headers)
 
     @app.exception_handler(RequestValidationError)

@@ -3,7 +3,8 @@
 FastAPI answers such bodies with an undocumented `400 There was an error parsing the body`
 (invalid UTF-8, or a RecursionError on very deep nesting) or a 422 (bad syntax). `JsonBodyRoute`
 checks the body first and raises `BadRequestError` with a code; the parsed body is cached on the
-request (Starlette's `Request.json()`), so FastAPI does not parse it again.
+request (Starlette's `Request.json()`), so FastAPI does not parse it again. A refused body
+answers the route's 401/403 first: a caller without a token learns nothing about bodies.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from typing import Any, Final
 from fastapi import Request, Response
 from fastapi.routing import APIRoute
 
+from service.app.api.deps import authorize
 from service.app.errors import BadRequestError
 
 MAX_JSON_DEPTH: Final = 32
@@ -92,7 +94,11 @@ class JsonBodyRoute(APIRoute):
             return handler
 
         async def checked(request: Request) -> Response:
-            await check_json_body(request)
+            try:
+                await check_json_body(request)
+            except BadRequestError:
+                authorize(request, self.dependencies)  # a 401/403 comes before the body's 400
+                raise
             return await handler(request)
 
         return checked

@@ -157,11 +157,13 @@ def save_session(session_id: SessionId, sessions: Sessions) -> SavedMap:
     dependencies=Read,
     summary="Current pose",
     description="The latest pose (map frame: metres, radians). `404` (`not_found`): no such "
-    "session; `409` (`no_pose_yet`): the session exists but has no pose yet (retry later).",
-    responses=errors(401, 404, 409, 422),
+    "session; `409` (`no_pose_yet`): the session exists but has no pose yet (retry later); "
+    "`503` (`unavailable`) with `Retry-After`: the session is still being restored after a "
+    "restart.",
+    responses=errors(401, 404, 409, 422, 503),
 )
 def read_pose(session: SessionDep) -> PoseView:
-    pose = session.last_pose
+    pose = session.pose_for_read()
     if pose is None:
         raise ConflictError(f"session {session.id} has no pose yet", code="no_pose_yet")
     return PoseView.of(pose)

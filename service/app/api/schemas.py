@@ -25,7 +25,11 @@ class SessionCreate(BaseModel):
     model_config = ConfigDict(extra="forbid", strict=True)
 
     robot_id: str = Field(pattern=ID_PATTERN, max_length=64, examples=["amr-07"])
-    resolution_m: float = Field(0.05, ge=0.01, le=1.0, description="map cell size in metres")
+    # allow_inf_nan=False: NaN (which Python's JSON parser takes) is "not a finite number",
+    # not "should be less than or equal to 1".
+    resolution_m: float = Field(
+        0.05, ge=0.01, le=1.0, allow_inf_nan=False, description="map cell size in metres"
+    )
     use_odometry: bool = Field(True, description="use the scans' odometry as motion prior")
 
 

@@ -128,6 +128,19 @@ def test_request_bodies_have_strict_types(client: TestClient, field: str, value:
     assert field in r.json()["detail"]
 
 
+@pytest.mark.parametrize("literal", [b"NaN", b"Infinity", b"-Infinity"])
+def test_a_resolution_that_is_not_finite_is_named_so(client: TestClient, literal: bytes) -> None:
+    # Python's JSON parser takes these literals; the answer must not be about a bound.
+    body = b'{"robot_id": "amr-8", "resolution_m": ' + literal + b"}"
+    r = client.post("/sessions", content=body, headers={"content-type": "application/json"})
+    assert r.status_code == 422, r.text
+    detail = r.json()["detail"]
+    assert "resolution_m" in detail
+    assert "finite number" in detail
+    assert "less than" not in detail
+    assert "greater than" not in detail
+
+
 def test_strict_types_still_take_json_numbers(client: TestClient) -> None:
     body = {"robot_id": "amr-7", "resolution_m": 1, "use_odometry": False}
     r = client.post("/sessions", json=body)

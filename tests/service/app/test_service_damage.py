@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import json
 import logging
 import os
 import pickle
@@ -226,7 +227,13 @@ def test_http_answers_while_sessions_restore(
             assert health["status"] == "restoring"
             assert health["sessions_restoring"] == 1
             assert client.get(f"/sessions/{session.id}").json()["status"] == "restoring"
+            # Its pose is not "none yet" (409) but "not yet restored": 503, come back later.
+            pose = client.get(f"/sessions/{session.id}/pose")
+            assert (pose.status_code, pose.json()["code"]) == (503, "unavailable"), pose.text
+            assert "restoring" in pose.json()["detail"]
+            assert int(pose.headers["retry-after"]) >= 1
             assert client.get(f"/sessions/{session.id}/map.png").status_code == 503
+            assert "retry-after" in client.get(f"/sessions/{session.id}/trajectory").headers
             assert client.post(f"/sessions/{session.id}/stop").status_code == 503
             assert client.delete(f"/sessions/{session.id}").status_code == 503
             # Scans arriving meanwhile wait, and are mapped once the replay is done.
@@ -589,14 +596,25 @@ def test_fsck_reports_and_repairs_without_guessing(
     assert recording.read_bytes() == bytes(raw)  # nothing written without --repair
 
     shutil.rmtree(broken)
+    found = json.loads(fsck(str(data), "--json").stdout)
+    (problem,) = [f["problem"] for f in found[0]["findings"] if f["file"] == recording.name]
     repaired = fsck(str(data), "--repair")
     assert repaired.returncode == 3, repaired.stdout + repaired.stderr
     (backup,) = folder.glob(f"{recording.name}.bak-*")
     assert backup.read_bytes() == bytes(raw)
     assert (folder / f"{checkpoint.name}.rejected").exists()
-    assert fsck(str(data)).returncode == 0
+    after = fsck(str(data))
+    assert after.returncode == 0
+    assert "an earlier repair cut" in after.stdout
+    # What remains is intact, but records were lost: the session says so, with the counts
+    # fsck found (it used to say `ok`, as if nothing had happened).
     again = runtime_factory(data).sessions.get(session.id)
-    assert again.status == "ok"  # what remains is intact; the loss was reported by fsck
+    assert again.status == "degraded"
+    damage = again.damage
+    assert damage.records_lost >= 1
+    assert damage.regions == 1
+    assert f"{damage.records_lost} record(s) and {damage.bytes_lost} bytes lost" in problem
+    assert any("fsck --repair cut" in note for note in damage.notes), damage.notes
     assert fsck("--help").returncode == 0
 
 

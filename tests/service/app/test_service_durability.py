@@ -399,3 +399,35 @@ def test_kill_9_right_after_an_acknowledgement_loses_nothing(tmp_path: Path, map
         assert seqs == list(range(len(seqs)))
     finally:
         assert again.stop() == 0, again.log_tail()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(120)
+def test_serve_logs_what_its_shutdown_made_durable(tmp_path: Path) -> None:
+    """SIGTERM used to end `serve` without a word: the log must say the shutdown started and
+    what it flushed and closed."""
+    svc = ServiceProc(tmp_path / "data")
+    svc.start()
+    try:
+        sid = svc.create_session("bye-1")["id"]
+        robot = SimRobot("bye-1")
+        with zenoh_peer(svc.zenoh_endpoint) as peer:
+            pub = peer.declare_publisher(
+                scan_key("bye-1"), congestion_control=zenoh.CongestionControl.BLOCK
+            )
+
+            def mapped() -> bool:
+                pub.put(robot.next_payload())
+                return bool(svc.json(f"/sessions/{sid}")["scans_accepted"] >= 5)
+
+            wait_for(mapped, 30, "5 scans mapped", period_s=0.05)
+            pub.undeclare()  # type: ignore[no-untyped-call]
+    finally:
+        assert svc.stop() == 0, svc.log_tail()
+    text = svc.log_path.read_text(errors="replace")
+    assert "SIGTERM: shutting down" in text, text[-3000:]
+    line = next((ln for ln in text.splitlines() if "shut down in" in ln), "")
+    assert "1 session(s) fsynced and closed, 1 checkpoint(s) written" in line, text[-3000:]
+    assert "Zenoh session closed" in line
+    assert "unlocked" in line
+    assert text.index("SIGTERM: shutting down") < text.index("shut down in")

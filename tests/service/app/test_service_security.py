@@ -113,6 +113,31 @@ def test_the_read_token_cannot_control(runtime_factory: RuntimeFactory) -> None:
         assert client.delete(f"/sessions/{sid}", headers=AS_CONTROL).status_code == 204
 
 
+@pytest.mark.timeout(60)
+def test_the_token_is_checked_before_the_body(runtime_factory: RuntimeFactory) -> None:
+    """A caller without the control token learns 401/403, whatever its body: it is told
+    nothing about what the service accepts before it has shown a token."""
+    runtime = runtime_factory(token=CONTROL, read_token=READ)
+    bodies = [
+        b"{not json",  # invalid_json
+        b'{"robot_id": "\xff"}',  # invalid_utf8
+        b"[" * 40 + b"]" * 40,  # json_too_deep
+        b'{"robot_id": 5}',  # valid JSON, refused by the schema (422 with the token)
+    ]
+    json_type = {"Content-Type": "application/json"}
+    with TestClient(create_app(runtime)) as client:
+        for body in bodies:
+            anonymous = client.post("/sessions", content=body, headers=json_type)
+            assert anonymous.status_code == 401, (body, anonymous.text)
+            assert anonymous.headers["www-authenticate"] == "Bearer"
+            wrong = client.post("/sessions", content=body, headers={**json_type, **WRONG})
+            assert wrong.status_code == 401, body
+            reader = client.post("/sessions", content=body, headers={**json_type, **AS_READER})
+            assert reader.status_code == 403, body
+            control = client.post("/sessions", content=body, headers={**json_type, **AS_CONTROL})
+            assert control.status_code in (400, 422), body
+
+
 def test_reads_stay_open_without_a_read_token_on_loopback(
     runtime_factory: RuntimeFactory,
 ) -> None:
