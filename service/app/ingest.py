@@ -363,23 +363,24 @@ class Ingest:
         scan = self._validate(robot_id, payload, tracked=None)
         if scan is None:
             return False
-        if self._admit is not None and not self._admit(robot_id, source):
-            return False
         has_session = self._sessions.active_for(robot_id) is not None
         if not has_session and len(self._queues) >= self._settings.max_robots:
             self._forget_silent()
+        admitted = True
         with self._lock:
             queue = self._queues.get(robot_id)
-            if queue is None:
-                # A robot with a session always fits: sessions have their own limit, and a
-                # created session must never meet "robot limit reached".
-                if not has_session and len(self._queues) >= self._settings.max_robots:
-                    queue = None
-                else:
-                    queue = self._adopt(robot_id, payload)
-            else:  # adopted meanwhile (cannot happen: newcomers are served by one worker)
+            if queue is not None:  # adopted meanwhile (cannot happen: one worker serves these)
                 queue.items.append(payload)
                 self._schedule(queue)
+            # A robot with a session always fits: sessions have their own limit, and a created
+            # session must never meet "robot limit reached". The publisher guard is asked only
+            # now, so that it keeps no state for a robot that is not tracked.
+            elif has_session or len(self._queues) < self._settings.max_robots:
+                admitted = self._admit is None or self._admit(robot_id, source)
+                if admitted:
+                    queue = self._adopt(robot_id, payload)
+        if not admitted:
+            return False
         if queue is None:
             self._metrics.inc(SCANS_DROPPED, robot="", reason="too_many_robots")
             self._log_once(
