@@ -84,7 +84,12 @@ def export_mcap(source: str, data_dir: Path, out: Path) -> dict[str, int]:
     except BaseException:
         partial.unlink(missing_ok=True)
         raise
-    return {"scans": counts.scans, "poses": counts.poses, "maps": counts.maps}
+    return {
+        "scans": counts.scans,
+        "poses": counts.poses,
+        "maps": counts.maps,
+        "skipped": counts.skipped,
+    }
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -96,7 +101,10 @@ def run_export(args: argparse.Namespace) -> int:
     # The command's result (stdout): what was written.
     print(  # noqa: T201
         f"{args.mcap}: {counts['scans']} scans, {counts['poses']} poses, "
-        f"{counts['maps']} map (ROS 2 schemas)",
+        f"{counts['maps']} map (ROS 2 schemas)"
+        + (
+            f"; {counts['skipped']} left out (stamps outside ROS time)" if counts["skipped"] else ""
+        ),
         flush=True,
     )
     return EXIT_OK

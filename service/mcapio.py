@@ -10,6 +10,10 @@ Topics (frames `map` and `<robot_id>/base_link`, stamps from the scans):
 Written with `mcap` (chunked, zstd) and `rosbags`' CDR serialiser, which encodes a float32
 array in one numpy call; the message definitions registered as ROS 2 schemas are generated
 by `rosbags` from the same types, so `mcap-ros2-support`, `rosbags` and Foxglove decode them.
+Stamps outside ROS time (before 1970, after 2038: `service.app.limits.in_ros_time`) cannot be
+written (ROS 2 `Time.sec` is an int32, MCAP log times are unsigned): the service refuses such
+scans at ingest, and a message of an older recording that has one is left out of the export,
+counted (`ExportCounts.skipped`) and logged, so that every recording exports.
 The writer streams: messages are written as they are read, a chunk (1 MiB) at a time, so memory
 does not grow with the session's length; `stream_mcap` yields the bytes as chunks complete, for
 an HTTP response.
@@ -30,6 +34,7 @@ from mcap.writer import Writer as McapWriter
 from rosbags.typesys import Stores, get_typestore
 
 from clients.wire import Pose, Scan
+from service.app.limits import in_ros_time
 from service.bridge import scan_to_laser
 from service.core.maps.grid import OccupancyGrid
 from service.core.types import Pose2D
@@ -59,6 +64,7 @@ class ExportCounts:
     maps: int = 0
     first_stamp_ns: int = 0
     last_stamp_ns: int = 0
+    skipped: int = 0  # scans and poses left out: their stamp is outside ROS time
 
 
 class _Sink:
@@ -209,12 +215,29 @@ class McapExporter:
             self.counts.first_stamp_ns = stamp_ns
         self.counts.last_stamp_ns = max(self.counts.last_stamp_ns, stamp_ns)
 
+    def _writable(self, stamp_ns: int, what: str) -> bool:
+        if in_ros_time(stamp_ns):
+            return True
+        if not self.counts.skipped:
+            log.warning(
+                "MCAP export: a %s stamped %d ns is outside ROS time (1970 to 2038): left out "
+                "(further ones only counted)",
+                what,
+                stamp_ns,
+            )
+        self.counts.skipped += 1
+        return False
+
     def scan(self, scan: Scan) -> None:
+        if not self._writable(scan.stamp_ns, "scan"):
+            return
         self._write("/scan", laser_scan_msg(scan), scan.stamp_ns)
         self._stamp(scan.stamp_ns)
         self.counts.scans += 1
 
     def pose(self, pose: Pose) -> None:
+        if not self._writable(pose.stamp_ns, "pose"):
+            return
         self._write("/pose", pose_stamped_msg(pose), pose.stamp_ns)
         self._write("/tf", tf_msg(pose), pose.stamp_ns)
         self._stamp(pose.stamp_ns)
@@ -226,6 +249,10 @@ class McapExporter:
         self.counts.maps += 1
 
     def finish(self) -> None:
+        if self.counts.skipped:
+            log.warning(
+                "MCAP export: %d message(s) left out: stamps outside ROS time", self.counts.skipped
+            )
         finish: Any = self._writer.finish  # untyped in mcap
         finish()
 

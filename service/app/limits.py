@@ -6,6 +6,10 @@ idle recordings are closed) plus a transient one while it is fsynced or checkpoi
 rest of the process (Zenoh sockets, HTTP connections, mapper pipes, the lock file) needs a
 reserve.
 
+Time: stamps a recording or an export can hold are ROS time, seconds in an int32 (ROS 2's
+`builtin_interfaces/Time`, and the year-2038 limit) and never before the epoch (MCAP's log
+times are unsigned). `in_ros_time` is the one test of that range, for ingest and export.
+
 Log storms: at the descriptor limit, asyncio logs a traceback for every connection waiting in
 the listen backlog, every second (1.48 M lines in 100 s before this filter). `RepeatFilter`
 passes the first few identical records per window and then one summary line per window.
@@ -24,6 +28,14 @@ log = logging.getLogger(__name__)
 DESCRIPTOR_RESERVE: Final = 128  # sockets, HTTP connections, pipes, files being written
 DESCRIPTORS_PER_ROBOT: Final = 2
 MAX_ROBOTS_CAP: Final = 1024
+
+ROS_TIME_MIN_NS: Final = 0
+ROS_TIME_MAX_NS: Final = (2**31 - 1) * 1_000_000_000 + 999_999_999  # 2038-01-19T03:14:07.999999999Z
+
+
+def in_ros_time(stamp_ns: int) -> bool:
+    """True when a stamp fits ROS time (and an MCAP log time): 1970 to 2038."""
+    return ROS_TIME_MIN_NS <= stamp_ns <= ROS_TIME_MAX_NS
 
 
 def nofile_limits() -> tuple[int, int]:

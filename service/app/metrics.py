@@ -118,6 +118,30 @@ class Metrics:
         with self._lock:
             return sum(self._families[name].values.values())
 
+    def by_label(self, name: str, label: str) -> dict[str, float]:
+        """A counter summed per value of one label (`reason` -> count): a summary whose size
+        is the label's values, not the series'."""
+        out: dict[str, float] = {}
+        with self._lock:
+            for key, value in self._families[name].values.items():
+                for k, v in key:
+                    if k == label:
+                        out[v] = out.get(v, 0.0) + value
+        return out
+
+    def forget(self, names: Iterable[str], **label_values: str) -> int:
+        """Remove every series of `names` whose labels include `label_values` (a robot that
+        was forgotten must not keep its series forever); returns how many went."""
+        wanted = set(label_values.items())
+        removed = 0
+        with self._lock:
+            for name in names:
+                fam = self._families[name]
+                for key in [k for k in fam.values if wanted <= set(k)]:
+                    del fam.values[key]
+                    removed += 1
+        return removed
+
     def render(self) -> str:
         with self._lock:
             families = [

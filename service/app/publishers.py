@@ -168,6 +168,15 @@ class PublisherGuard:
         )
         return False
 
+    def forget(self, robot_id: str) -> None:
+        """Ingest forgot a silent robot: drop its entry unless a publisher token is present
+        (valid scans on made-up ids must not fill `max_robots` here for good either)."""
+        with self._lock:
+            robot = self._robots.get(robot_id)
+            if robot is not None and not robot.tokens:
+                del self._robots[robot_id]
+                self._logged = {k for k in self._logged if k[0] != robot_id}
+
     def _owner_gone(self, robot: _RobotPublishers, now: int) -> bool:
         if robot.owner in robot.tokens:
             return False

@@ -98,6 +98,7 @@ class MappingRuntime:
             self.metrics,
             settings.ingest,
             admit=self.publishers.admit,
+            forget=self.publishers.forget,
         )
         self.foxglove: FoxgloveView | None = None  # started with the runtime when configured
         self.patterns = RobotPatterns(settings.fleet.robots)

@@ -85,6 +85,16 @@ class IngestSettings(_Frozen):
         description="robots tracked at once (queues, workers) and active sessions",
     )
     max_payload_bytes: int = Field(default=1 << 20, ge=1024)
+    # A robot without an active session that sends nothing for this long is forgotten (its
+    # queue, its metrics series), so made-up robot ids cannot fill `max_robots` for good.
+    robot_idle_s: float = Field(
+        default=60.0, gt=0.0, description="forget a silent robot without a session after (s)"
+    )
+    # A scan's host stamp further than this after its robot's previous one is mapped but
+    # counted and logged as `stamp_gap` (docs/wire-format.md, "Time").
+    max_stamp_gap_s: float = Field(
+        default=10.0, gt=0.0, description="forward stamp jump flagged as a gap (s)"
+    )
     # Processes that run the estimators and grids (0: in the service's process). One process
     # estimates on one core, however many threads it has (see service/app/mapper.py).
     mapper_processes: int = Field(
@@ -100,6 +110,12 @@ class IngestSettings(_Frozen):
     # The back end (loop search, pose graph) beside every session's front end, in a background
     # thread of the process that runs the estimator (docs/backend.md, "Live").
     loop_closure: bool = Field(default=True, description="close loops (False: the front end alone)")
+
+    @property
+    def newcomer_depth(self) -> int:
+        """Payloads of robots not tracked yet, waiting to be validated (one shared queue,
+        drop oldest): what a flood of made-up robot ids can occupy."""
+        return max(self.queue_depth, 128)
 
     @property
     def worker_threads(self) -> int:
@@ -324,6 +340,8 @@ def build_settings(
             max_robots="MAX_ROBOTS",
             max_payload_bytes="MAX_PAYLOAD_BYTES",
             workers="INGEST_WORKERS",
+            robot_idle_s="ROBOT_IDLE_S",
+            max_stamp_gap_s="MAX_STAMP_GAP_S",
         )
         | (
             {"mapper_processes": args.mapper_processes}

@@ -33,7 +33,10 @@ MCAP_MEDIA_TYPE = "application/x-mcap"
     "geometry_msgs/msg/PoseStamped, and `/tf`, tf2_msgs/msg/TFMessage map -> "
     "<robot>/base_link), stamped with the scans' stamps, then the current map (`/map`, "
     "nav_msgs/msg/OccupancyGrid). Streamed as it is written; of an active session, what is "
-    "recorded when the download reaches it.",
+    "recorded when the download reaches it. Messages stamped outside ROS time (before 1970, "
+    "after 2038) are left out. A failure once the file has started (a segment gone or "
+    "unreadable) aborts the transfer: the response ends without its last chunk, which HTTP "
+    "clients report as an error; it never ends as a complete but truncated file.",
     responses={
         200: {"content": {MCAP_MEDIA_TYPE: {}}, "description": "an MCAP file"},
         **errors(401, 404, 422),
@@ -43,13 +46,18 @@ def read_recording_mcap(session: SessionDep) -> StreamingResponse:
     paths = session.recording_paths()  # segments; none yet after a start or a reset
 
     def messages() -> Iterator[Scan | Pose]:
+        # The headers (200) are sent by now: a failure must reach the client as a broken
+        # transfer, never as a well-formed but truncated file. Raising aborts the response
+        # without its last chunk, which every HTTP client reports as an error.
         try:
             for path in paths:
                 yield from read_messages(path)
-        except FileNotFoundError:  # pruned or reset meanwhile: end the file here
-            log.warning("session %s: export stopped: a segment is gone", session.id)
-        except (RecordingError, OSError) as err:  # headers are sent: end the file here
-            log.error("session %s: export stopped: %s", session.id, err)
+        except FileNotFoundError as err:  # pruned or reset meanwhile
+            log.error("session %s: export aborted: a segment is gone (%s)", session.id, err)
+            raise
+        except (RecordingError, OSError) as err:
+            log.error("session %s: export aborted: %s", session.id, err)
+            raise
 
     def final_map() -> Any:
         return session.map_image().image

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 
 from fastapi import APIRouter, Response
@@ -14,6 +15,7 @@ from service.app.api.schemas import (
     Health,
     HealthStatus,
     HealthSummary,
+    IngestHealth,
     RobotHealth,
     ZenohHealth,
     errors,
@@ -33,7 +35,8 @@ PROMETHEUS_TEXT = "text/plain; version=0.0.4; charset=utf-8"
     "service is alive and serves what is ready); `degraded` (with `warnings`) when Zenoh is "
     "closed, recording/fsync failed, a session's files were found damaged "
     "(`sessions_degraded`), another instance claims this one's robots (`fleet.conflicts`), or a "
-    "second publisher uses a robot's key; plus per-robot ingest status. When the service has a "
+    "second publisher uses a robot's key; plus per-robot ingest status and the ingest's limits "
+    "and counts by reason (`ingest`). When the service has a "
     "read token, a request without a token gets the status only (no robot ids); a wrong token "
     "is 401.",
     responses=errors(401),
@@ -68,6 +71,8 @@ def _health(runtime: Runtime) -> Health:
                 publishers=pub.publishers if pub is not None else 0,
                 duplicate_publisher=pub.conflict if pub is not None else False,
                 duplicate_scans_refused=pub.refused if pub is not None else 0,
+                stamps_refused=queue.stamps_refused if queue is not None else 0,
+                stamp_gaps=queue.stamp_gaps if queue is not None else 0,
             )
         )
     conflicts = runtime.fleet.conflicts()
@@ -104,6 +109,7 @@ def _health(runtime: Runtime) -> Health:
         sessions_degraded=damaged,
         zenoh=zenoh_info,
         robots=views,
+        ingest=IngestHealth(**dataclasses.asdict(runtime.ingest.summary())),
         fleet=fleet,
         warnings=warnings,
     )

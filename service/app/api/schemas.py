@@ -297,6 +297,32 @@ class RobotHealth(BaseModel):
     duplicate_scans_refused: int = Field(
         0, description="scans refused because they came from a second publisher"
     )
+    stamps_refused: int = Field(
+        0,
+        description="scans refused by the time contract: host stamp out of ROS time, or not "
+        "after the previous scan mapped in the session (docs/wire-format.md, Time)",
+    )
+    stamp_gaps: int = Field(
+        0, description="scans mapped after a forward stamp jump beyond the gap limit"
+    )
+
+
+class IngestHealth(BaseModel):
+    """Ingest limits and counts, summarised: one entry per reason, never one per robot id."""
+
+    robots_tracked: int = Field(description="robots with ingest state (a queue)")
+    max_robots: int = Field(
+        description="robots without a session tracked at most (robots with one always fit)"
+    )
+    robots_forgotten: int = Field(description="silent robots without a session forgotten")
+    newcomers_queued: int = Field(description="payloads of untracked robots awaiting validation")
+    scans_accepted: int
+    scans_unmapped: int = Field(description="valid scans of robots without an active session")
+    scans_rejected: dict[str, int] = Field(description="refused scans by reason")
+    scans_dropped: dict[str, int] = Field(description="scans not processed, by reason")
+    stamp_anomalies: dict[str, int] = Field(
+        description="time-contract findings of robots with a session, by reason"
+    )
 
 
 class ZenohHealth(BaseModel):
@@ -336,6 +362,7 @@ class Health(BaseModel):
     )
     zenoh: ZenohHealth
     robots: list[RobotHealth]
+    ingest: IngestHealth
     fleet: FleetHealth
     warnings: list[str] = Field(
         default_factory=list, description="why the status is not ok, one line each"

@@ -159,6 +159,12 @@ def test_one_worker_serves_robots_round_robin_each_in_order(
     runtime_factory: RuntimeFactory,
 ) -> None:
     runtime = runtime_factory(queue_depth=64, workers=1)
+    # A robot is tracked (has its own queue) once a valid scan of it arrived; before that its
+    # scans wait among the newcomers. One scan each, before the sessions: unmapped.
+    for r in ("ra", "rb", "rc"):
+        runtime.ingest.submit(scan_key(r), SimRobot(r).next_payload())
+    drain(runtime)
+    assert [s.robot_id for s in runtime.ingest.robots()] == ["ra", "rb", "rc"]
     order: list[str] = []
     gate = threading.Event()
     ids = iter(["ra", "rb", "rc"])

@@ -291,6 +291,8 @@ def test_client_and_mapctl_with_a_read_token(tmp_path: Path) -> None:
                     "publishers": 0,
                     "duplicate_publisher": False,
                     "duplicate_scans_refused": 0,
+                    "stamps_refused": 0,
+                    "stamp_gaps": 0,
                 }
             ]
             with pytest.raises(MappingError) as forbidden:
