@@ -29,7 +29,7 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -207,6 +207,10 @@ def _worst(
     ]
 
 
+# The front end every run uses (`--front-end`): a setting of the whole evaluation.
+FRONT_END: list[Literal["manhattan", "matcher"]] = ["manhattan"]
+
+
 def _run_mapper(
     scans: Iterator[Scan],
     *,
@@ -227,6 +231,7 @@ def _run_mapper(
         progress=_progress_enabled(),
         on_estimate=on_estimate,
         loop_closure=loop_closure,
+        front_end=FRONT_END[0],
     )
     run_dir = out_dir / name
     report = write_outputs(run, run_dir, input_info=input_info)
@@ -984,8 +989,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="evaluate only these (repeatable)",
     )
     parser.add_argument("--seed", type=int, action="append", help="synthetic building seed(s)")
+    parser.add_argument(
+        "--front-end",
+        choices=["manhattan", "matcher"],
+        default="manhattan",
+        help="the front end every run uses (default: %(default)s)",
+    )
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
+    FRONT_END[0] = args.front_end
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",

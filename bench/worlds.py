@@ -431,6 +431,7 @@ def run_world(
     loop_closure: bool = False,
     odometry: bool = False,
     timeout_s: float = 1800.0,
+    front_end: str = "manhattan",
 ) -> dict[str, Any]:
     """Generate, write, map with the CLI in a subprocess, score; one world."""
     from sensor_agent.sim.families import generate
@@ -443,6 +444,7 @@ def run_world(
     gen_s = time.perf_counter() - t0
     out = world_dir / "map"
     cmd = [*_cli_command(), "map", str(files["mcap"]), "--out", str(out), "--no-progress"]
+    cmd += ["--front-end", front_end]
     if not odometry:
         cmd.append("--no-odom")
     if not loop_closure:
@@ -628,6 +630,7 @@ def run_set(
     loop_closure: bool,
     odometry: bool = False,
     progress: bool = True,
+    front_end: str = "manhattan",
 ) -> tuple[list[dict[str, Any]], str]:
     from tqdm import tqdm
 
@@ -648,6 +651,7 @@ def run_set(
                 keep_dir=keep,
                 loop_closure=loop_closure,
                 odometry=odometry,
+                front_end=front_end,
             ): (fam, seed)
             for fam, seed in worlds
         }
@@ -691,6 +695,7 @@ def run_set(
         "git_commit": git_commit(),
         "loop_closure": loop_closure,
         "odometry": odometry,
+        "front_end": front_end,
         "jobs": jobs,
         "wall_s": round(wall, 1),
         "load_average_end": [round(v, 2) for v in load],
@@ -699,6 +704,7 @@ def run_set(
     }
     # With odometry the files carry "-odom": `write_doc`'s sets are the no-odometry runs.
     suffix = ("-loop-closure" if loop_closure else "") + ("-odom" if odometry else "")
+    suffix += "" if front_end == "manhattan" else f"-{front_end}"
     (out_dir / f"{set_name}{suffix}.json").write_text(json.dumps(_finite(payload), indent=2) + "\n")
     markdown += (
         f"\n_{len(results)} worlds in {wall:.0f} s with {jobs} job(s); load average at the end "
@@ -875,6 +881,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         action="store_true",
         help="worlds with drifting wheel odometry, mapped with it (default: --no-odom)",
     )
+    p_run.add_argument(
+        "--front-end",
+        choices=["manhattan", "matcher"],
+        default="manhattan",
+        help="the CLI's --front-end (default: %(default)s)",
+    )
     p_run.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR")
     p_run.add_argument("--no-progress", action="store_true", help="no progress bar")
     p_run.add_argument(
@@ -930,6 +942,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         loop_closure=args.loop_closure,
         odometry=args.odom,
         progress=not args.no_progress,
+        front_end=args.front_end,
     )
     sys.stdout.write(markdown + "\n")
     if args.doc is not None:

@@ -94,6 +94,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="the front end alone: no loop search, no pose graph (for comparison)",
     )
     p_map.add_argument(
+        "--front-end",
+        choices=("manhattan", "matcher"),
+        default="manhattan",
+        help="manhattan: the projection-histogram cascade; matcher: one scan-to-submap match "
+        "with the walls' heading as a prior (being measured; docs/estimator.md) "
+        "(default: %(default)s)",
+    )
+    p_map.add_argument(
         "--resolution", type=float, default=0.05, metavar="M", help="map cell size (default: 0.05)"
     )
     p_map.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -38,7 +38,7 @@ from service import mapio
 from service.bridge import scan_to_laser
 from service.core.frontend.params import EstimatorParams
 from service.core.maps.grid import OccupancyGrid
-from service.core.slam import LoopStats, SlamParams, SlamSession
+from service.core.slam import FrontEndName, LoopStats, SlamParams, SlamSession, make_frontend
 from service.core.types import LaserScan, Pose2D, PoseEstimate
 
 log = logging.getLogger(__name__)
@@ -70,6 +70,7 @@ class MapRun:
     optimised: list[Pose2D] | None = None  # every scan's pose after loop closure (None: off)
     loops: LoopStats | None = None
     backend_s: float = 0.0  # the back end, all of it: nodes, submaps, loop search, optimisation
+    front_end: str = "manhattan"  # which front end (`--front-end`)
     wall_families_deg: list[float] = field(default_factory=lambda: [0.0])  # the estimator's
 
     @property
@@ -98,6 +99,7 @@ def map_scans(
     on_estimate: Callable[[Scan, PoseEstimate], None] | None = None,
     loop_closure: bool = True,
     slam_params: SlamParams | None = None,
+    front_end: FrontEndName = "manhattan",
 ) -> MapRun:
     """Estimate a pose for every scan and build the occupancy grid.
 
@@ -114,9 +116,11 @@ def map_scans(
         slam_params = SlamParams(loop_closure=loop_closure)
     elif slam_params.loop_closure != loop_closure:
         slam_params = replace(slam_params, loop_closure=loop_closure)
-    slam = SlamSession(params, slam_params)
+    slam = SlamSession(
+        params, slam_params, make_frontend(front_end, params, use_odometry=use_odometry)
+    )
     grid = OccupancyGrid(resolution_m)
-    run = MapRun(grid=grid)
+    run = MapRun(grid=grid, front_end=front_end)
     deferred: list[tuple[int, LaserScan]] = []  # integrated once the poses are final
     since_integrated = 0
     start = time.perf_counter()
@@ -257,6 +261,7 @@ def build_report(
         "loop_closures": _loop_report(run.loops),
         # Angles (degrees, modulo 90) of the wall families the heading was measured on.
         "wall_families_deg": run.wall_families_deg,
+        "front_end": run.front_end,
     }
     if input_info is not None:
         report["input"] = input_info
@@ -421,6 +426,7 @@ def run_map(args: argparse.Namespace) -> int:
             total=info.scan_count,
             progress=show_progress,
             loop_closure=not args.no_loop_closure,
+            front_end=args.front_end,
         )
     except LogError as err:
         _fail(str(err))

@@ -21,7 +21,7 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal, Protocol
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from service.core.backend.graph import GraphParams, PoseGraph, rotate_covariance
 from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
 from service.core.frontend.estimator import ManhattanEstimator
 from service.core.frontend.params import EstimatorParams
+from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
 from service.core.maps.composed import ChunkedMap
 from service.core.maps.submaps import Submap, SubmapBuilder, SubmapParams
 from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate, frozen_array
@@ -298,14 +299,44 @@ class SlamBackend:
         return self.graph.estimate(node).compose(self.node_frontend[node].inverse())
 
 
+FrontEndName = Literal["manhattan", "matcher"]
+FRONT_ENDS: tuple[FrontEndName, ...] = ("manhattan", "matcher")
+
+
+class FrontEnd(Protocol):
+    """What the session needs of a front end (`ManhattanEstimator`, `ScanMatcherFrontEnd`)."""
+
+    def process(self, scan: LaserScan) -> PoseEstimate: ...
+
+    def reset(self) -> None: ...
+
+    @property
+    def wall_families_rad(self) -> tuple[float, ...]: ...
+
+
+def make_frontend(
+    name: FrontEndName, estimator_params: EstimatorParams | None = None, use_odometry: bool = True
+) -> FrontEnd:
+    """The named front end: "manhattan" (the projection cascade) or "matcher" (one
+    scan-to-submap match, `frontend.scan_matcher`)."""
+    if name == "matcher":
+        return ScanMatcherFrontEnd(MatcherParams(use_odometry=use_odometry))
+    if name == "manhattan":
+        return ManhattanEstimator(estimator_params)
+    raise ValueError(f"unknown front end {name!r}; use one of {', '.join(FRONT_ENDS)}")
+
+
 class SlamSession:
     """Front end plus back end for one robot's session (pure computation, no IO)."""
 
     def __init__(
-        self, estimator_params: EstimatorParams | None = None, params: SlamParams | None = None
+        self,
+        estimator_params: EstimatorParams | None = None,
+        params: SlamParams | None = None,
+        frontend: FrontEnd | None = None,
     ) -> None:
         self.params = params if params is not None else SlamParams()
-        self.frontend = ManhattanEstimator(estimator_params)
+        self.frontend = frontend if frontend is not None else ManhattanEstimator(estimator_params)
         self.backend = SlamBackend(self.params)
         self._scan_node: list[int] = []  # per scan: its latest node (-1: none yet)
         self._scan_frontend: list[Pose2D] = []

@@ -168,6 +168,34 @@ def test_map_recording_writes_every_output(
     assert "loop closure:" not in result.stdout
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_map_with_the_matcher_front_end(recording: tuple[Path, list[int]], tmp_path: Path) -> None:
+    """`--front-end matcher` maps the same recording through the same outputs, and its
+    trajectory follows the simulated truth."""
+    from sensor_agent.sim import world as sim
+
+    path, stamps = recording
+    out = tmp_path / "matcher"
+    result = _run_cli(path, "--out", out, "--no-odom", "--no-progress", "--front-end", "matcher")
+    assert result.returncode == 0, result.stderr
+    report = _check_outputs(out, stamps)
+    assert report["front_end"] == "matcher"
+    truth = sim.generate_trajectory(sim.generate_building(3, "small"), 3, spacing_m=0.3).poses
+    est = np.array(
+        [
+            [float(v) for v in line.split()[1:3]]
+            for line in (out / "trajectory.tum").read_text().splitlines()
+        ]
+    )
+    # The map frame is the first scan's: compare displacements from the first pose, rotated.
+    c, s = math.cos(truth[0, 2]), math.sin(truth[0, 2])
+    d = truth[:N_SCANS, :2] - truth[0, :2]
+    truth_local = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
+    error_m = np.hypot(*(est - truth_local).T)
+    assert float(np.max(error_m)) < 0.15, error_m.max()
+
+
 def _assert_one_line_error(result: subprocess.CompletedProcess[str]) -> None:
     assert result.returncode == 2, result
     assert "Traceback" not in result.stderr

@@ -1,0 +1,254 @@
+"""The front end's submap as a likelihood grid: what a scan point scores where it lands.
+
+Every hit adds a Gaussian exp(-d²/2σ²) to a surface density (d from the cell's centre to the
+hit, exact, not snapped to the cell). The field is that density divided by its own maximum
+within the stamp's radius: across a wall it is a Gaussian profile peaking at 1 on the *mean* of
+the wall's hits, so noisy hits from many scans sharpen the wall instead of widening it (a
+maximum of Gaussians would flatten its top by the noise). Smooth enough for Gauss-Newton on
+bilinear interpolation (hector's `ScanMatcher`), cheap enough to look up by cell in the
+correlative search.
+
+Beside the field, a coarse mask of the space the submap's rays crossed: a point where no ray
+went scores `unknown_score`, neither a hit nor a miss. No ray-cast misses lower the field: a
+submap lives for a bounded stretch of travel (`MatcherParams.scans_per_submap`), which bounds
+how long a person's trail stays in it. The grid grows in whole blocks as the robot moves.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import numpy.typing as npt
+
+from service.core.types import FloatArray
+
+F32Array = npt.NDArray[np.float32]
+
+_GROW_CELLS = 128  # margin added on each side when a hit falls outside (6.4 m at 5 cm)
+_KNOWN_FACTOR = 4  # the observed-space mask's cell, in grid cells (0.2 m at 5 cm)
+
+
+def _local_max(grid: F32Array, radius: int) -> F32Array:
+    """out[i, j] = max of grid over the (2·radius + 1)² window centred on (i, j), clipped."""
+    out = grid.copy()
+    for axis in (0, 1):
+        src = out.copy()
+        n = src.shape[axis]
+        for shift in range(1, radius + 1):
+            if shift >= n:
+                break
+            lo = [slice(None)] * 2
+            hi = [slice(None)] * 2
+            lo[axis], hi[axis] = slice(0, n - shift), slice(shift, n)
+            np.maximum(out[tuple(lo)], src[tuple(hi)], out=out[tuple(lo)])
+            np.maximum(out[tuple(hi)], src[tuple(lo)], out=out[tuple(hi)])
+    return out
+
+
+def _catmull_rom(t: FloatArray) -> tuple[list[FloatArray], list[FloatArray]]:
+    """The four Catmull-Rom weights at fractions `t` of a cell, and their derivatives."""
+    t2, t3 = t * t, t * t * t
+    weights = [
+        0.5 * (-t3 + 2.0 * t2 - t),
+        0.5 * (3.0 * t3 - 5.0 * t2 + 2.0),
+        0.5 * (-3.0 * t3 + 4.0 * t2 + t),
+        0.5 * (t3 - t2),
+    ]
+    slopes = [
+        0.5 * (-3.0 * t2 + 4.0 * t - 1.0),
+        0.5 * (9.0 * t2 - 10.0 * t),
+        0.5 * (-9.0 * t2 + 8.0 * t + 1.0),
+        0.5 * (3.0 * t2 - 2.0 * t),
+    ]
+    return weights, slopes
+
+
+def _round_up(cells: int) -> int:
+    """Whole mask cells."""
+    return -(-cells // _KNOWN_FACTOR) * _KNOWN_FACTOR
+
+
+class LikelihoodGrid:
+    """A growing likelihood field in the map frame. Row = y, column = x; cell (i, j)'s centre
+    is at origin + ((j + 0.5)·res, (i + 0.5)·res)."""
+
+    def __init__(self, resolution_m: float, hit_sigma_m: float, unknown_score: float) -> None:
+        self.resolution_m = resolution_m
+        self.hit_sigma_m = hit_sigma_m
+        self.unknown_score = unknown_score
+        self.known: npt.NDArray[np.bool_] = np.zeros((0, 0), dtype=np.bool_)
+        self.radius_cells = max(1, math.ceil(3.0 * hit_sigma_m / resolution_m))
+        self.origin_m = (0.0, 0.0)
+        self.values: F32Array = np.zeros((0, 0), dtype=np.float32)
+        self.density: F32Array = np.zeros((0, 0), dtype=np.float32)  # Σ of the hits' Gaussians
+        self.inserted = 0  # scans inserted
+        r = np.arange(-self.radius_cells, self.radius_cells + 1)
+        self._di, self._dj = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
+
+    # ------------------------------------------------------------------ building
+    def insert(self, points_map_m: FloatArray, sensor_m: tuple[float, float]) -> None:
+        """Add every hit's Gaussian to the surface density, renormalise the field around them,
+        and mark the space their rays crossed as observed."""
+        self.inserted += 1
+        if points_map_m.shape[0] == 0:
+            return
+        self._ensure(np.vstack((points_map_m, np.asarray([sensor_m]))))
+        self._observe(points_map_m, sensor_m)
+        res = self.resolution_m
+        u = (points_map_m[:, 0] - self.origin_m[0]) / res - 0.5  # continuous column
+        v = (points_map_m[:, 1] - self.origin_m[1]) / res - 0.5  # continuous row
+        ci, cj = np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)
+        ii = ci[:, None] + self._di[None, :]
+        jj = cj[:, None] + self._dj[None, :]
+        d2 = ((ii - v[:, None]) ** 2 + (jj - u[:, None]) ** 2) * (res * res)
+        val = np.exp(-0.5 * d2 / self.hit_sigma_m**2).ravel()
+        flat = (ii * self.values.shape[1] + jj).ravel()
+        order = np.argsort(flat, kind="stable")
+        cells = flat[order]
+        starts = np.flatnonzero(np.diff(cells, prepend=-1))
+        self.density.reshape(-1)[cells[starts]] += np.add.reduceat(val[order], starts).astype(
+            np.float32
+        )
+        rad = self.radius_cells
+        self._normalise(
+            int(ci.min()) - rad,
+            int(ci.max()) + rad + 1,
+            int(cj.min()) - rad,
+            int(cj.max()) + rad + 1,
+        )
+
+    def _normalise(self, i0: int, i1: int, j0: int, j1: int) -> None:
+        """field = density / its maximum within the stamp radius, over rows i0:i1, columns
+        j0:j1: the surface's profile across it, peaking at 1 on the mean of its hits."""
+        rad = self.radius_cells
+        h, w = self.values.shape
+        a0, a1 = max(0, i0 - rad), min(h, i1 + rad)
+        b0, b1 = max(0, j0 - rad), min(w, j1 + rad)
+        block = self.density[a0:a1, b0:b1]
+        peak = _local_max(block, rad)
+        field = np.where(peak > 1e-3, block / np.maximum(peak, 1e-3), 0.0).astype(np.float32)
+        r0, r1 = max(0, i0) - a0, min(h, i1) - a0
+        c0, c1 = max(0, j0) - b0, min(w, j1) - b0
+        self.values[a0 + r0 : a0 + r1, b0 + c0 : b0 + c1] = field[r0:r1, c0:c1]
+
+    def _observe(self, points_map_m: FloatArray, sensor_m: tuple[float, float]) -> None:
+        """Mark the mask cells along each ray, sensor to hit, as observed."""
+        step_m = 0.5 * _KNOWN_FACTOR * self.resolution_m
+        d = points_map_m - np.asarray(sensor_m)
+        counts = np.ceil(np.hypot(d[:, 0], d[:, 1]) / step_m).astype(np.int64) + 1
+        ray = np.repeat(np.arange(d.shape[0]), counts)
+        start = np.repeat(np.cumsum(counts) - counts, counts)
+        frac = (np.arange(ray.shape[0]) - start) / np.maximum(counts[ray] - 1, 1)
+        xs = sensor_m[0] + d[ray, 0] * frac
+        ys = sensor_m[1] + d[ray, 1] * frac
+        cell = _KNOWN_FACTOR * self.resolution_m
+        rows = ((ys - self.origin_m[1]) / cell).astype(np.int64)
+        cols = ((xs - self.origin_m[0]) / cell).astype(np.int64)
+        self.known[rows, cols] = True
+
+    def _ensure(self, points_map_m: FloatArray) -> None:
+        """Grow the grid so every point's stamp fits inside it."""
+        res, pad = self.resolution_m, (self.radius_cells + 2) * self.resolution_m
+        x0, y0 = float(points_map_m[:, 0].min()) - pad, float(points_map_m[:, 1].min()) - pad
+        x1, y1 = float(points_map_m[:, 0].max()) + pad, float(points_map_m[:, 1].max()) + pad
+        h, w = self.values.shape
+        ox, oy = self.origin_m
+        if h and x0 >= ox and y0 >= oy and x1 < ox + w * res and y1 < oy + h * res:
+            return
+        if not h:
+            ox = math.floor(x0 / res) * res - _GROW_CELLS * res
+            oy = math.floor(y0 / res) * res - _GROW_CELLS * res
+            nx = math.ceil((x1 - x0) / res) + 2 * _GROW_CELLS
+            ny = math.ceil((y1 - y0) / res) + 2 * _GROW_CELLS
+            nx, ny = _round_up(nx), _round_up(ny)
+            self.origin_m = (ox, oy)
+            self.values = np.zeros((ny, nx), dtype=np.float32)
+            self.density = np.zeros((ny, nx), dtype=np.float32)
+            self.known = np.zeros((ny // _KNOWN_FACTOR, nx // _KNOWN_FACTOR), dtype=np.bool_)
+            return
+
+        def extra(short_m: float) -> int:  # cells to add on a side short by `short_m`
+            return _round_up(math.ceil(short_m / res) + _GROW_CELLS) if short_m > 0.0 else 0
+
+        add_left, add_down = extra(ox - x0), extra(oy - y0)
+        add_right, add_up = extra(x1 - (ox + w * res)), extra(y1 - (oy + h * res))
+        grown = np.zeros((h + add_down + add_up, w + add_left + add_right), dtype=np.float32)
+        grown[add_down : add_down + h, add_left : add_left + w] = self.values
+        self.values = grown
+        density = np.zeros_like(grown)
+        density[add_down : add_down + h, add_left : add_left + w] = self.density
+        self.density = density
+        k = _KNOWN_FACTOR
+        known = np.zeros((grown.shape[0] // k, grown.shape[1] // k), dtype=np.bool_)
+        known[add_down // k : (add_down + h) // k, add_left // k : (add_left + w) // k] = self.known
+        self.known = known
+        self.origin_m = (ox - add_left * res, oy - add_down * res)
+
+    # ------------------------------------------------------------------ reading
+    def cell_coords(self, points_map_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Continuous (row, column) of points: integer values at cell centres."""
+        res = self.resolution_m
+        u = (points_map_m[:, 0] - self.origin_m[0]) / res - 0.5
+        v = (points_map_m[:, 1] - self.origin_m[1]) / res - 0.5
+        return v, u
+
+    def interpolate(self, points_map_m: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Bicubic (Catmull-Rom) field value at each point, and its gradient (per metre, map x
+        and y). Bilinear would flatten a wall's peak that falls between two cell centres."""
+        n = points_map_m.shape[0]
+        h, w = self.values.shape
+        if h < 4 or w < 4 or n == 0:
+            return np.zeros(n), np.zeros((n, 2))
+        v, u = self.cell_coords(points_map_m)
+        i0 = np.floor(v).astype(np.int64)
+        j0 = np.floor(u).astype(np.int64)
+        inside = (i0 >= 1) & (j0 >= 1) & (i0 < h - 2) & (j0 < w - 2)
+        i0 = np.where(inside, i0, 1)
+        j0 = np.where(inside, j0, 1)
+        wv, dwv = _catmull_rom(v - i0)
+        wu, dwu = _catmull_rom(u - j0)
+        vals = self.values
+        value = np.zeros(n)
+        d_du = np.zeros(n)
+        d_dv = np.zeros(n)
+        for a in range(4):
+            row = np.zeros(n)
+            drow = np.zeros(n)
+            for b in range(4):
+                f = vals[i0 - 1 + a, j0 - 1 + b].astype(np.float64)
+                row += wu[b] * f
+                drow += dwu[b] * f
+            value += wv[a] * row
+            d_dv += dwv[a] * row
+            d_du += wv[a] * drow
+        grad = np.column_stack((d_du, d_dv)) / self.resolution_m
+        value[~inside] = 0.0
+        grad[~inside] = 0.0
+        unknown = ~self._known_at(np.rint(v).astype(np.int64), np.rint(u).astype(np.int64))
+        value[unknown] = self.unknown_score
+        grad[unknown] = 0.0
+        return np.clip(value, 0.0, 1.0), grad
+
+    def _known_at(
+        self, rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64]
+    ) -> npt.NDArray[np.bool_]:
+        """Whether the mask says each cell's space was observed (False outside the grid)."""
+        kr, kc = rows // _KNOWN_FACTOR, cols // _KNOWN_FACTOR
+        h, w = self.known.shape
+        inside = (kr >= 0) & (kc >= 0) & (kr < h) & (kc < w) & (rows >= 0) & (cols >= 0)
+        out = np.zeros(rows.shape, dtype=np.bool_)
+        out[inside] = self.known[kr[inside], kc[inside]]
+        return out
+
+    def lookup_cells(self, rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64]) -> FloatArray:
+        """Field at whole cells (any shape); 0 outside the grid."""
+        h, w = self.values.shape
+        rows, cols = np.broadcast_arrays(rows, cols)
+        inside = (rows >= 0) & (cols >= 0) & (rows < h) & (cols < w)
+        out = np.full(rows.shape, self.unknown_score, dtype=np.float64)
+        if h and w:
+            out[inside] = self.values[rows[inside], cols[inside]]
+        known = self._known_at(rows, cols)
+        out[~known] = self.unknown_score
+        return out

@@ -1,0 +1,249 @@
+"""One scan matched against one submap: a correlative search, then Gauss-Newton, one objective.
+
+The objective over the pose T = (x, y, θ) of the scan in the map frame:
+
+    cost(T) = w / N · Σ_i r(M(T·p_i))²               the scan against the submap's field M
+            + (T - T_pred)ᵀ Σ_pred⁻¹ (T - T_pred)      the motion prior
+            + ρ(((θ - θ_wall) / σ_wall)²)              the walls' heading prior, robust (Huber)
+
+M = exp(-d²/2σ²) holds the distance d to the nearest surface, so r = √(-2 ln M) = d/σ: each
+point is a point-to-surface residual, quadratic near a wall (a Gauss-Newton Hessian that does
+not vanish at the optimum, as (1 - M)² does), and capped at `max_residual_sigmas` so that a
+point on something the submap never saw (a person, a new room) costs a constant, not a pull.
+`w` (`MatchOptions.scan_weight`) is the scan's information: as many independent points as
+that. The mean over points, not the sum, because neighbouring points of a scan are not
+independent evidence (Cartographer scales its occupied-space residuals the same way).
+
+1. *Search* (Olson 2009; Cartographer's `RealTimeCorrelativeScanMatcher2D`): every rotation in
+   a window, every whole-cell translation in a window, the scan scored by cell lookup; the
+   lowest cost wins. The windows are ±3σ of the prediction, so at 40 Hz it is a few cells
+   and at one scan per 0.3 m it is wide.
+2. *Refine* (hector's `ScanMatcher`, Cartographer's `CeresScanMatcher2D`): Gauss-Newton on the
+   bilinear field from the search's best pose, priors as residuals.
+3. *Covariance*: the inverse of the refinement's Hessian. A corridor has no gradient along its
+   axis, so there only the prior's σ remains: long along, short across.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.core.frontend.likelihood import LikelihoodGrid
+from service.core.types import FloatArray, Pose2D, wrap_angle
+
+
+@dataclass(frozen=True, slots=True)
+class MatchOptions:
+    scan_weight: float = 50.0  # w: a scan counts as this many independent points
+    max_residual_sigmas: float = 3.0  # a point farther than this × σ from a surface: an outlier
+    search_sigmas: float = 3.0  # search window: ± this × the prediction's σ, per axis
+    search_min_m: float = 0.05  # ... but at least this (one cell) ...
+    search_max_m: float = 1.0  # ... and at most this
+    search_min_rad: float = math.radians(0.5)
+    search_max_rad: float = math.radians(25.0)
+    search_points: int = 200  # scan points scored by the search (evenly subsampled)
+    refine_iterations: int = 12
+    wall_huber: float = 2.0  # the wall prior's residual is linear beyond this many σ
+
+
+@dataclass(frozen=True, slots=True)
+class Priors:
+    """The match's priors: where the motion model puts the scan, and the walls' heading."""
+
+    predicted: Pose2D
+    cov_pred: FloatArray  # (3, 3), map axes
+    wall_heading_rad: float | None = None  # absolute heading the walls say (nearest member)
+    wall_sigma_rad: float = math.inf
+
+
+@dataclass(frozen=True, slots=True)
+class MatchResult:
+    pose: Pose2D
+    covariance: FloatArray  # (3, 3): posterior, map axes (inverse Hessian, priors included)
+    scan_information: FloatArray  # (3, 3): the scan's own part of the Hessian
+    score: float  # mean field value of the scan's points at the pose, in [0, 1]
+    searched_cells: int  # poses scored by the search
+
+
+def _transform(points_xy_m: FloatArray, pose: Pose2D) -> FloatArray:
+    c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
+    out = np.empty_like(points_xy_m)
+    out[:, 0] = c * points_xy_m[:, 0] - s * points_xy_m[:, 1] + pose.x_m
+    out[:, 1] = s * points_xy_m[:, 0] + c * points_xy_m[:, 1] + pose.y_m
+    return out
+
+
+def _delta(pose: Pose2D, ref: Pose2D) -> FloatArray:
+    return np.array(
+        [pose.x_m - ref.x_m, pose.y_m - ref.y_m, wrap_angle(pose.theta_rad - ref.theta_rad)]
+    )
+
+
+def _wall_cost_weight(priors: Priors, theta_rad: float, huber: float) -> tuple[float, float, float]:
+    """(cost, residual in σ, IRLS weight) of the wall prior at `theta_rad`."""
+    if priors.wall_heading_rad is None or not math.isfinite(priors.wall_sigma_rad):
+        return 0.0, 0.0, 0.0
+    z = wrap_angle(theta_rad - priors.wall_heading_rad) / priors.wall_sigma_rad
+    a = abs(z)
+    if a <= huber:
+        return z * z, z, 1.0
+    return 2.0 * huber * a - huber * huber, z, huber / a
+
+
+def search(
+    grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
+) -> tuple[Pose2D, int]:
+    """The lowest-cost pose on the search lattice around the prediction (cell lookup)."""
+    pts = points_xy_m
+    if pts.shape[0] > opts.search_points:
+        pts = pts[np.linspace(0, pts.shape[0] - 1, opts.search_points).astype(np.int64)]
+    n = pts.shape[0]
+    res = grid.resolution_m
+    sig = np.sqrt(np.maximum(np.diag(priors.cov_pred), 0.0))
+    half_x = float(np.clip(opts.search_sigmas * sig[0], opts.search_min_m, opts.search_max_m))
+    half_y = float(np.clip(opts.search_sigmas * sig[1], opts.search_min_m, opts.search_max_m))
+    half_t = float(np.clip(opts.search_sigmas * sig[2], opts.search_min_rad, opts.search_max_rad))
+    max_r = float(np.max(np.hypot(pts[:, 0], pts[:, 1]))) if n else 1.0
+    step_t = max(math.atan2(res, max(max_r, 1.0)), math.radians(0.05))
+    wall = priors.wall_heading_rad
+    centre_t = priors.predicted.theta_rad
+    if wall is not None and math.isfinite(priors.wall_sigma_rad):
+        # θ is narrow where the walls anchor it: the window covers the walls' heading and the
+        # prediction, no more than the prediction's own window.
+        d = wrap_angle(wall - centre_t)
+        if abs(d) <= half_t:
+            lo = min(0.0, d) - opts.search_sigmas * priors.wall_sigma_rad
+            hi = max(0.0, d) + opts.search_sigmas * priors.wall_sigma_rad
+            lo, hi = max(lo, -half_t), min(hi, half_t)
+            centre_t, half_t = centre_t + 0.5 * (lo + hi), 0.5 * (hi - lo)
+    n_t = math.ceil(half_t / step_t)
+    thetas = centre_t + step_t * np.arange(-n_t, n_t + 1)
+    nx, ny = math.ceil(half_x / res), math.ceil(half_y / res)
+    dj = np.arange(-nx, nx + 1)
+    di = np.arange(-ny, ny + 1)
+    info_pred = np.linalg.inv(priors.cov_pred)
+    px, py = priors.predicted.x_m, priors.predicted.y_m
+    best = (math.inf, priors.predicted)
+    c, s = np.cos(thetas), np.sin(thetas)
+    # (K, N) map coordinates of the points at the predicted translation, every rotation.
+    mx = c[:, None] * pts[None, :, 0] - s[:, None] * pts[None, :, 1] + px
+    my = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + py
+    rows0 = np.rint((my - grid.origin_m[1]) / res - 0.5).astype(np.int64)
+    cols0 = np.rint((mx - grid.origin_m[0]) / res - 0.5).astype(np.int64)
+    for k in range(thetas.shape[0]):
+        rows = rows0[k][None, None, :] + di[:, None, None]
+        cols = cols0[k][None, None, :] + dj[None, :, None]
+        vals = grid.lookup_cells(rows, cols)  # (ny, nx, N)
+        scan_cost = opts.scan_weight * np.mean(_residual_sq(vals, opts), axis=2)
+        dx = dj[None, :] * res + np.zeros((di.shape[0], 1))
+        dy = di[:, None] * res + np.zeros((1, dj.shape[0]))
+        dt = wrap_angle(float(thetas[k]) - priors.predicted.theta_rad)
+        prior = (
+            info_pred[0, 0] * dx * dx
+            + info_pred[1, 1] * dy * dy
+            + info_pred[2, 2] * dt * dt
+            + 2.0 * info_pred[0, 1] * dx * dy
+            + 2.0 * info_pred[0, 2] * dx * dt
+            + 2.0 * info_pred[1, 2] * dy * dt
+        )
+        total = scan_cost + prior + _wall_cost_weight(priors, float(thetas[k]), opts.wall_huber)[0]
+        flat = int(np.argmin(total))
+        if total.flat[flat] < best[0]:
+            a, b = divmod(flat, dj.shape[0])
+            best = (
+                float(total.flat[flat]),
+                Pose2D(
+                    float(px + dj[b] * res), float(py + di[a] * res), wrap_angle(float(thetas[k]))
+                ),
+            )
+    return best[1], int(thetas.shape[0] * di.shape[0] * dj.shape[0])
+
+
+def _residual_sq(value: FloatArray, opts: MatchOptions) -> FloatArray:
+    """r² = -2 ln M, capped at max_residual_sigmas²."""
+    floor = math.exp(-0.5 * opts.max_residual_sigmas**2)
+    return np.asarray(-2.0 * np.log(np.clip(value, floor, 1.0)))
+
+
+def _scan_terms(
+    grid: LikelihoodGrid, pts: FloatArray, pose: Pose2D, opts: MatchOptions
+) -> tuple[float, FloatArray, FloatArray, float]:
+    """Scan cost, its gradient and Gauss-Newton Hessian at `pose` (halved), and the mean
+    field value."""
+    n = pts.shape[0]
+    q = _transform(pts, pose)
+    value, grad = grid.interpolate(q)
+    r_sq = _residual_sq(value, opts)
+    r = np.sqrt(r_sq)
+    inlier = (r < opts.max_residual_sigmas) & (value > 0.0)
+    # ∂(r²/2)/∂q = -∇M / M, exact; the Gauss-Newton Jacobian ∂r/∂q = -∇M / (M r) with r held
+    # off 0, where interpolation leaves ∇M and r not quite vanishing together.
+    inv_m = np.where(inlier, 1.0 / np.maximum(value, 1e-9), 0.0)
+    half_grad_q = -grad * inv_m[:, None]
+    jac_q = half_grad_q / np.maximum(r, 0.1)[:, None]
+    c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
+    dqx_dt = -s * pts[:, 0] - c * pts[:, 1]
+    dqy_dt = c * pts[:, 0] - s * pts[:, 1]
+
+    def to_pose(d_dq: FloatArray) -> FloatArray:
+        return np.column_stack((d_dq[:, 0], d_dq[:, 1], d_dq[:, 0] * dqx_dt + d_dq[:, 1] * dqy_dt))
+
+    j = to_pose(jac_q)
+    scale = opts.scan_weight / max(n, 1)
+    cost = scale * float(r_sq.sum())
+    g = scale * to_pose(half_grad_q).sum(axis=0)
+    h = scale * (j.T @ j)
+    return cost, g, h, float(value.mean()) if n else 0.0
+
+
+def refine(
+    grid: LikelihoodGrid, points_xy_m: FloatArray, start: Pose2D, priors: Priors, opts: MatchOptions
+) -> tuple[Pose2D, FloatArray, FloatArray, float]:
+    """Gauss-Newton from `start`: (pose, posterior covariance, scan information, score)."""
+    info_pred = np.linalg.inv(priors.cov_pred)
+    pose = start
+
+    def total(p: Pose2D) -> tuple[float, FloatArray, FloatArray, FloatArray, float]:
+        cost, g, h_scan, score = _scan_terms(grid, points_xy_m, p, opts)
+        d = _delta(p, priors.predicted)
+        wall_cost, z, wz = _wall_cost_weight(priors, p.theta_rad, opts.wall_huber)
+        cost += float(d @ info_pred @ d) + wall_cost
+        g = g + info_pred @ d
+        h = h_scan + info_pred
+        if wz > 0.0:
+            g[2] += wz * z / priors.wall_sigma_rad
+            h[2, 2] += wz / priors.wall_sigma_rad**2
+        return cost, g, h, h_scan, score
+
+    cost, g, h, h_scan, score = total(pose)
+    for _ in range(opts.refine_iterations):
+        step = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
+        accepted = False
+        for _half in range(6):  # a step that raises the cost is halved
+            cand = Pose2D(
+                float(pose.x_m + step[0]),
+                float(pose.y_m + step[1]),
+                wrap_angle(float(pose.theta_rad + step[2])),
+            )
+            c2, g2, h2, hs2, s2 = total(cand)
+            if c2 <= cost:
+                pose, cost, g, h, h_scan, score = cand, c2, g2, h2, hs2, s2
+                accepted = True
+                break
+            step *= 0.5
+        if not accepted or (abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-6):
+            break
+    covariance = np.linalg.inv(h)
+    return pose, 0.5 * (covariance + covariance.T), h_scan, score
+
+
+def match(
+    grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
+) -> MatchResult:
+    """Search, then refine: the scan's pose in the map frame and how sure it is."""
+    start, cells = search(grid, points_xy_m, priors, opts)
+    pose, covariance, h_scan, score = refine(grid, points_xy_m, start, priors, opts)
+    return MatchResult(pose, covariance, h_scan, score, cells)

@@ -1,0 +1,326 @@
+"""`ScanMatcherFrontEnd`: predict → match → update, one scan at a time.
+
+    predict   constant velocity (or odometry), capped in time, σ growing with the gap
+    match     one objective: the scan against the active submap + the motion prior + the walls'
+              heading prior (`matcher`, `walls`)
+    update    velocity from the matched motion; the scan into the submaps when it moved enough;
+              the covariance relative to the latest keyframe (what the pose graph weighs)
+
+Submaps are Cartographer's pair: every keyframe goes into the two newest; the older one, holding
+between `scans_per_submap` and twice that, is what the scan is matched against.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from clients.wire import PoseFlag
+from service.core.frontend.likelihood import LikelihoodGrid
+from service.core.frontend.matcher import MatchOptions, Priors, match
+from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
+from service.core.types import Covariance3, FloatArray, LaserScan, Pose2D, PoseEstimate
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class MatcherParams:
+    """Every tunable of the front end, a line each."""
+
+    # --- the scan
+    voxel_m: float = 0.05  # points matched: one per voxel of this size
+    max_range_m: float = 20.0  # returns beyond this are not used
+    reach_margin_m: float = 1.0  # matched points stay this far inside the sensor's range
+    min_points: int = 20  # fewer: DEGENERATE, the pose is the prediction
+    # --- submaps
+    resolution_m: float = 0.05  # likelihood grid cell
+    hit_sigma_m: float = 0.05  # width of a hit's Gaussian in the grid
+    unknown_score: float = 0.5  # a point where no submap ray went: neither hit nor miss
+    surface_max_gap_m: float = 0.5  # neighbouring returns closer than this are one surface ...
+    surface_gap_per_range: float = 0.1  # ... or than this × their range (grazing walls)
+    scans_per_submap: int = 30  # a new submap every this many keyframes
+    # --- keyframes (the motion filter): the paper's scan spacing
+    keyframe_distance_m: float = 0.3
+    keyframe_angle_deg: float = 10.0
+    # --- prediction
+    use_odometry: bool = True  # odometry (when the scan carries it) is the motion prior
+    max_extrapolation_s: float = 0.5  # constant velocity is extrapolated at most this long
+    accel_sigma_m_s2: float = 1.0  # the velocity's random walk (a Kalman filter) ...
+    angular_accel_sigma_deg_s2: float = 90.0  # ... and the turn rate's
+    gap_speed_m_s: float = 0.5  # σ grows by this × the gap beyond max_extrapolation_s
+    position_floor_m: float = 0.01
+    heading_floor_deg: float = 0.2
+    odometry_sigma_ratio: float = 0.1  # odometry's σ per metre / radian of its motion
+    # --- match and walls
+    match: MatchOptions = field(default_factory=MatchOptions)
+    walls: WallOptions = field(default_factory=WallOptions)
+    wall_prior: bool = True  # False: no walls' heading prior (a plain 2-D matcher)
+    ambiguous_ratio: float = 0.01  # scan information this much weaker on one axis: AMBIGUOUS
+
+
+@dataclass
+class FrontEndStats:
+    scans: int = 0
+    degenerate: int = 0
+    stamp_backwards: int = 0  # scans not after the previous one: not matched
+
+
+def surface_points(
+    points_xy_m: FloatArray, max_gap_m: float, gap_per_range: float, spacing_m: float
+) -> FloatArray:
+    """The scan as surfaces: consecutive returns closer than `max_gap_m`, or than
+    `gap_per_range` × their range (a wall far away at a grazing angle), joined by points every
+    `spacing_m`. A grid of bare hits has bumps where this scan's beams happened to land, and a
+    later scan, landing elsewhere on the same wall, would be pulled along the wall by them."""
+    n = points_xy_m.shape[0]
+    if n < 2:
+        return points_xy_m
+    d = np.diff(points_xy_m, axis=0)
+    length = np.hypot(d[:, 0], d[:, 1])
+    range_m = np.hypot(points_xy_m[:-1, 0], points_xy_m[:-1, 1])
+    joined = length <= np.maximum(max_gap_m, gap_per_range * range_m)
+    # Evenly spaced by arc length along the joined runs (gaps have no length here): an even
+    # spacing leaves no bumps in the grid's density where beams happened to fall.
+    along = np.where(joined, length, 0.0)
+    cum = np.concatenate(([0.0], np.cumsum(along)))
+    targets = np.arange(0.0, cum[-1], spacing_m)
+    seg = np.clip(np.searchsorted(cum, targets, side="right") - 1, 0, n - 2)
+    frac = (targets - cum[seg]) / np.maximum(along[seg], 1e-12)
+    dense = points_xy_m[seg] + d[seg] * frac[:, None]
+    # Returns on no joined run (a post, a far lone hit) are kept as they are.
+    touches = np.zeros(n, dtype=np.bool_)
+    touches[:-1] |= joined
+    touches[1:] |= joined
+    return np.vstack((dense, points_xy_m[~touches]))
+
+
+def voxel_thin(points_xy_m: FloatArray, voxel_m: float) -> FloatArray:
+    """The first point of every occupied voxel, in scan order."""
+    if points_xy_m.shape[0] == 0:
+        return points_xy_m
+    keys = np.floor(points_xy_m / voxel_m).astype(np.int64)
+    packed = keys[:, 0] * 1_000_003 + keys[:, 1]
+    _, first = np.unique(packed, return_index=True)
+    return np.asarray(points_xy_m[np.sort(first)], dtype=np.float64)
+
+
+def _covariance3(m: FloatArray) -> Covariance3:
+    a = [float(v) for v in m.ravel()]
+    return (a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
+
+
+class ScanMatcherFrontEnd:
+    """Tracks the robot's pose against its own submaps; the map frame is the first scan's."""
+
+    def __init__(self, params: MatcherParams | None = None) -> None:
+        self.params = params if params is not None else MatcherParams()
+        self.reset()
+
+    def reset(self) -> None:
+        self._pose: Pose2D | None = None
+        self._stamp_ns: int | None = None
+        self._velocity = np.zeros(3)  # (vx, vy, ω) per second, robot frame
+        self._velocity_cov = np.diag([1.0, 1.0, 1.0])  # its covariance: unknown at first
+        self._odom: Pose2D | None = None
+        self._submaps: list[LikelihoodGrid] = []
+        self._keyframe_pose: Pose2D | None = None
+        self._cov_since_keyframe = np.zeros((3, 3))
+        self._walls = WallState()
+        self.stats = FrontEndStats()
+
+    @property
+    def wall_families_rad(self) -> tuple[float, ...]:
+        return tuple(self._walls.families_rad)
+
+    # ------------------------------------------------------------------ public
+    def process(self, scan: LaserScan) -> PoseEstimate:
+        """The pose of `scan`. Never raises on bad data: returns the prediction, flagged."""
+        self.stats.scans += 1
+        if self._stamp_ns is not None and scan.stamp_ns <= self._stamp_ns:
+            self.stats.stamp_backwards += 1
+            if self.stats.stamp_backwards == 1 or self.stats.stamp_backwards % 1000 == 0:
+                log.warning(
+                    "scan stamp %d is not after the previous %d: not matched (%d so far)",
+                    scan.stamp_ns,
+                    self._stamp_ns,
+                    self.stats.stamp_backwards,
+                )
+            pose = self._pose if self._pose is not None else Pose2D(0.0, 0.0, 0.0)
+            return PoseEstimate(scan.stamp_ns, pose, 0.0, PoseFlag.DEGENERATE)
+        try:
+            return self._process(scan)
+        except (ValueError, FloatingPointError, IndexError, np.linalg.LinAlgError) as exc:
+            log.warning("front end could not match scan %d: %s", scan.stamp_ns, exc)
+            predicted, cov, flags = self._predict(scan)
+            return self._degenerate(scan, predicted, cov, flags)
+
+    # ------------------------------------------------------------------ steps
+    def _points(self, scan: LaserScan) -> FloatArray:
+        ranges = np.asarray(scan.ranges_m, dtype=np.float64)
+        if ranges.ndim != 1 or ranges.size == 0:
+            return np.zeros((0, 2))
+        pts = scan.points_xy_m()
+        # Matched within the sensor's reach less a margin: the submap's walls end where the
+        # last keyframes' reach ended, and a point past that end would pull the scan back.
+        reach_m = min(self.params.max_range_m, scan.range_max_m) - self.params.reach_margin_m
+        keep = np.hypot(pts[:, 0], pts[:, 1]) <= reach_m
+        return voxel_thin(pts[keep], self.params.voxel_m)
+
+    def _predict(self, scan: LaserScan) -> tuple[Pose2D, FloatArray, PoseFlag]:
+        """Predicted pose, its covariance (map axes), and the ODOMETRY_PRIOR flag if used."""
+        p = self.params
+        pose = self._pose if self._pose is not None else Pose2D(0.0, 0.0, 0.0)
+        gap_s = 0.0 if self._stamp_ns is None else max(0.0, (scan.stamp_ns - self._stamp_ns) * 1e-9)
+        odom = scan.odom if p.use_odometry else None
+        if odom is not None and self._odom is not None:
+            delta = self._odom.between(odom)
+            dist = math.hypot(delta.x_m, delta.y_m)
+            sig_xy = p.position_floor_m + p.odometry_sigma_ratio * dist
+            sig_t = math.radians(p.heading_floor_deg) + p.odometry_sigma_ratio * abs(
+                delta.theta_rad
+            )
+            flags = PoseFlag.ODOMETRY_PRIOR
+        else:
+            t = min(gap_s, p.max_extrapolation_s)
+            v = self._velocity
+            delta = Pose2D(v[0] * t, v[1] * t, v[2] * t)
+            # The velocity's own uncertainty over the extrapolated time, and beyond it, what the
+            # robot may have done during a pause nobody saw.
+            var = np.diag(self._velocity_cov + self._velocity_noise(gap_s)) * t * t
+            beyond = max(0.0, gap_s - t) * p.gap_speed_m_s
+            sig_xy = math.sqrt(max(var[0], var[1]) + beyond**2) + p.position_floor_m
+            sig_t = math.sqrt(var[2] + (beyond / 0.5) ** 2) + math.radians(p.heading_floor_deg)
+            flags = PoseFlag.NONE
+        cov = np.diag([sig_xy**2, sig_xy**2, sig_t**2])
+        return pose.compose(delta), cov, flags
+
+    def _process(self, scan: LaserScan) -> PoseEstimate:
+        p = self.params
+        pts = self._points(scan)
+        predicted, cov_pred, flags = self._predict(scan)
+        if pts.shape[0] < p.min_points:
+            return self._degenerate(scan, predicted, cov_pred, flags)
+        wall_meas = measure(pts, p.walls) if p.wall_prior else None
+        if self._pose is None:  # the first scan defines the map frame
+            pose, h_scan, score = Pose2D(0.0, 0.0, 0.0), np.eye(3) * 1e6, 1.0
+        else:
+            wall_rad, wall_sigma = heading_prior(
+                self._walls, wall_meas, predicted.theta_rad, p.walls
+            )
+            priors = Priors(predicted, cov_pred, wall_rad, wall_sigma)
+            result = match(self._submaps[0], pts, priors, p.match)
+            pose, h_scan, score = result.pose, result.scan_information, result.score
+        travel = (
+            0.0
+            if self._pose is None
+            else math.hypot(pose.x_m - self._pose.x_m, pose.y_m - self._pose.y_m)
+        )
+        if p.wall_prior and not observe(self._walls, wall_meas, pose.theta_rad, travel, p.walls):
+            flags |= (
+                PoseFlag.NON_MANHATTAN
+                if wall_meas and wall_meas.weight > 0
+                else PoseFlag.NO_DOMINANT_WALL
+            )
+        flags |= self._ambiguity(h_scan)
+        # The covariance relative to the latest keyframe: a Kalman step of the motion since it.
+        prior_cov = self._cov_since_keyframe + cov_pred
+        cov = np.linalg.inv(np.linalg.inv(prior_cov) + h_scan)
+        cov = 0.5 * (cov + cov.T)
+        self._update_motion(scan, pose, h_scan)
+        keyframe = self._is_keyframe(pose)
+        if keyframe:
+            self._insert(scan, pose)
+            self._cov_since_keyframe = np.zeros((3, 3))
+        else:
+            self._cov_since_keyframe = cov
+        return PoseEstimate(
+            scan.stamp_ns,
+            pose,
+            float(np.clip(score, 0.0, 1.0)),
+            flags,
+            keyframe,
+            _covariance3(cov),
+        )
+
+    def _degenerate(
+        self, scan: LaserScan, predicted: Pose2D, cov_pred: FloatArray, flags: PoseFlag
+    ) -> PoseEstimate:
+        """The prediction, flagged: time and pose move on, nothing is learnt from the scan."""
+        self.stats.degenerate += 1
+        self._cov_since_keyframe = self._cov_since_keyframe + cov_pred
+        if self._pose is not None:
+            self._pose = predicted
+        if self._stamp_ns is None or scan.stamp_ns > self._stamp_ns:
+            self._stamp_ns = scan.stamp_ns
+        if scan.odom is not None:
+            self._odom = scan.odom
+        cov = _covariance3(self._cov_since_keyframe)
+        return PoseEstimate(scan.stamp_ns, predicted, 0.0, flags | PoseFlag.DEGENERATE, False, cov)
+
+    def _ambiguity(self, h_scan: FloatArray) -> PoseFlag:
+        """AMBIGUOUS_X/Y where the scan's translation information is weak along that axis."""
+        evals, evecs = np.linalg.eigh(h_scan[:2, :2])
+        if evals[1] <= 0.0 or evals[0] >= self.params.ambiguous_ratio * evals[1]:
+            return PoseFlag.NONE
+        weak = evecs[:, 0]
+        return PoseFlag.AMBIGUOUS_X if abs(weak[0]) >= abs(weak[1]) else PoseFlag.AMBIGUOUS_Y
+
+    def _velocity_noise(self, gap_s: float) -> FloatArray:
+        p = self.params
+        a, alpha = p.accel_sigma_m_s2 * gap_s, math.radians(p.angular_accel_sigma_deg_s2) * gap_s
+        return np.diag([a * a, a * a, alpha * alpha])
+
+    def _update_motion(self, scan: LaserScan, pose: Pose2D, h_scan: FloatArray) -> None:
+        """Kalman step of the velocity: the measured motion counts as much as the scan
+        constrained it. Along a corridor the scan says nothing, so the velocity keeps its
+        prediction there (a slipped match does not become a speed)."""
+        if self._pose is not None and self._stamp_ns is not None:
+            gap_s = (scan.stamp_ns - self._stamp_ns) * 1e-9
+            if 0.0 < gap_s <= self.params.max_extrapolation_s:
+                d = self._pose.between(pose)
+                measured = np.array([d.x_m, d.y_m, d.theta_rad]) / gap_s
+                c, s = math.cos(self._pose.theta_rad), math.sin(self._pose.theta_rad)
+                rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # map -> robot
+                info = rot @ h_scan @ rot.T
+                r = 2.0 * np.linalg.inv(info + np.eye(3) * 1e-6) / (gap_s * gap_s)
+                p_v = self._velocity_cov + self._velocity_noise(gap_s)
+                gain = p_v @ np.linalg.inv(p_v + r)
+                self._velocity = self._velocity + gain @ (measured - self._velocity)
+                self._velocity_cov = (np.eye(3) - gain) @ p_v
+            elif gap_s > self.params.max_extrapolation_s:
+                self._velocity = np.zeros(3)  # after a pause: at rest until it moves again
+                self._velocity_cov = np.diag([1.0, 1.0, 1.0])
+        self._pose = pose
+        self._stamp_ns = scan.stamp_ns
+        if scan.odom is not None:
+            self._odom = scan.odom
+
+    def _is_keyframe(self, pose: Pose2D) -> bool:
+        k = self._keyframe_pose
+        if k is None:
+            return True
+        d = k.between(pose)
+        return math.hypot(d.x_m, d.y_m) >= self.params.keyframe_distance_m or abs(
+            d.theta_rad
+        ) >= math.radians(self.params.keyframe_angle_deg)
+
+    def _insert(self, scan: LaserScan, pose: Pose2D) -> None:
+        p = self.params
+        self._keyframe_pose = pose
+        pts = scan.points_xy_m()
+        pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= min(p.max_range_m, scan.range_max_m)]
+        pts = surface_points(pts, p.surface_max_gap_m, p.surface_gap_per_range, p.resolution_m / 2)
+        c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
+        world = np.column_stack(
+            (c * pts[:, 0] - s * pts[:, 1] + pose.x_m, s * pts[:, 0] + c * pts[:, 1] + pose.y_m)
+        )
+        if not self._submaps or self._submaps[-1].inserted >= p.scans_per_submap:
+            self._submaps.append(LikelihoodGrid(p.resolution_m, p.hit_sigma_m, p.unknown_score))
+        for grid in self._submaps:
+            grid.insert(world, (pose.x_m, pose.y_m))
+        if len(self._submaps) > 2:
+            self._submaps.pop(0)  # it holds 2 × scans_per_submap: the next one takes over

@@ -1,0 +1,232 @@
+"""The one-matcher front end on known answers: the match, its covariance, the walls' prior, the
+wall families, and bad scans (`service.core.frontend.matcher`, `walls`, `scan_matcher`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from clients.wire import PoseFlag
+from sensor_agent.sim.world import LaserModel, World, simulate_scan
+from service.core.frontend.likelihood import LikelihoodGrid
+from service.core.frontend.matcher import MatchOptions, Priors, match
+from service.core.frontend.scan_matcher import (
+    MatcherParams,
+    ScanMatcherFrontEnd,
+    surface_points,
+)
+from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
+from service.core.types import LaserScan, Pose2D, rotate_points
+
+pytestmark = pytest.mark.timeout(120)
+
+MODEL = LaserModel.utm30lx()
+PARAMS = MatcherParams()
+
+
+def _world(segments: list[list[float]]) -> World:
+    return World(
+        seed=0,
+        size="test",
+        width_m=60.0,
+        height_m=60.0,
+        corridor_width_m=2.0,
+        segments_m=np.array(segments, dtype=np.float64),
+        loop_xy_m=np.zeros((0, 2)),
+        free_raster=np.ones((1, 1), dtype=bool),
+    )
+
+
+ROOM = _world(
+    [
+        [0, 0, 8, 0], [8, 0, 8, 6], [8, 6, 0, 6], [0, 6, 0, 0],
+        [5, 4, 5.6, 4], [5.6, 4, 5.6, 4.8], [5.6, 4.8, 5, 4.8], [5, 4.8, 5, 4],
+        [2, 0, 2, 1.5],
+    ]
+)  # fmt: skip
+CORRIDOR = _world([[-90, 0, 90, 0], [-90, 2, 90, 2]])  # 180 m long, 2 m wide: no end in range
+
+
+def _scan(world: World, pose: Pose2D, rng: np.random.Generator, stamp_ns: int = 0) -> LaserScan:
+    sample = simulate_scan(world, pose, MODEL, rng)
+    return LaserScan(
+        stamp_ns, MODEL.angle_min_rad, MODEL.angle_increment_rad, sample.ranges_m,
+        MODEL.range_min_m, MODEL.range_max_m,
+    )  # fmt: skip
+
+
+def _grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
+    """A submap built as the front end builds one (surfaces), at known poses."""
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, PARAMS.unknown_score)
+    for scan, pose in scans:
+        pts = surface_points(
+            scan.points_xy_m(), PARAMS.surface_max_gap_m, PARAMS.surface_gap_per_range, 0.025
+        )
+        world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+        grid.insert(world, (pose.x_m, pose.y_m))
+    return grid
+
+
+def _points(scan: LaserScan) -> np.ndarray:
+    return ScanMatcherFrontEnd()._points(scan)
+
+
+@pytest.mark.parametrize("shift", [(0.12, -0.07, 2.0), (-0.2, 0.15, -4.0), (0.03, 0.01, 0.3)])
+def test_a_shifted_scan_is_recovered_against_its_own_submap(
+    shift: tuple[float, float, float],
+) -> None:
+    """The scan that built the submap, predicted at a known offset, lands back on the truth
+    within 1 cm and 0.1° (search, then refinement)."""
+    rng = np.random.default_rng(1)
+    truth = Pose2D(3.0, 2.5, 0.3)
+    scan = _scan(ROOM, truth, rng)
+    grid = _grid_of([(scan, truth)])
+    dx, dy, dth_deg = shift
+    predicted = Pose2D(truth.x_m + dx, truth.y_m + dy, truth.theta_rad + math.radians(dth_deg))
+    cov = np.diag([0.15**2, 0.15**2, math.radians(3.0) ** 2])
+    result = match(grid, _points(scan), Priors(predicted, cov), MatchOptions())
+    assert math.hypot(result.pose.x_m - truth.x_m, result.pose.y_m - truth.y_m) < 0.01
+    assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.1
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="issue 39 target not met yet: along/across σ is 3.2, not ≥ 10 (the submap's noisy "
+    "near walls still give the scan along-axis information)",
+)
+def test_a_plain_corridor_gives_a_covariance_long_along_it() -> None:
+    """No structure along the corridor: the scan's information there is nil, so the posterior
+    along it is the prior's, at least 10 times the σ across it. (The submap holds ten scans,
+    as a submap does: one noisy scan alone draws wiggly walls.)"""
+    rng = np.random.default_rng(2)
+    poses = [Pose2D(-0.15 * k, 1.0 + 0.02 * (k % 3), 0.0) for k in range(10)]
+    grid = _grid_of([(_scan(CORRIDOR, pose, rng), pose) for pose in poses])
+    scan = _scan(CORRIDOR, Pose2D(0.3, 1.0, 0.0), rng)
+    cov = np.diag([0.2**2, 0.2**2, math.radians(2.0) ** 2])
+    result = match(grid, _points(scan), Priors(Pose2D(0.3, 1.0, 0.0), cov), MatchOptions())
+    sigma_along, sigma_across = np.sqrt(np.diag(result.covariance)[:2])
+    assert sigma_along >= 10.0 * sigma_across
+    assert abs(result.pose.y_m - 1.0) < 0.01  # across: measured
+    assert abs(result.pose.x_m - 0.3) < 0.02  # along: the prior's
+
+
+def test_a_wall_prior_two_degrees_off_is_outvoted_by_the_match() -> None:
+    rng = np.random.default_rng(3)
+    truth = Pose2D(3.0, 2.5, math.radians(5.0))
+    grid = _grid_of(
+        [
+            (
+                _scan(ROOM, Pose2D(3.2, 2.4, math.radians(4.0)), rng),
+                Pose2D(3.2, 2.4, math.radians(4.0)),
+            )
+        ]
+    )
+    scan = _scan(ROOM, truth, rng)
+    cov = np.diag([0.1**2, 0.1**2, math.radians(3.0) ** 2])
+    wrong = truth.theta_rad + math.radians(2.0)
+    sigma = math.radians(WallOptions().sigma_deg)
+    result = match(grid, _points(scan), Priors(truth, cov, wrong, sigma), MatchOptions())
+    assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.2
+
+
+def _wing_scan(angle_deg: float, rng: np.random.Generator) -> np.ndarray:
+    """A room's walls at `angle_deg` in the map, seen by a robot at heading 0."""
+    c, s = math.cos(math.radians(angle_deg)), math.sin(math.radians(angle_deg))
+    segs = []
+    for x0, y0, x1, y1 in [(-4, -3, 4, -3), (4, -3, 4, 3), (4, 3, -4, 3), (-4, 3, -4, -3)]:
+        segs.append([c * x0 - s * y0, s * x0 + c * y0, c * x1 - s * y1, s * x1 + c * y1])
+    scan = _scan(_world(segs), Pose2D(0.0, 0.0, 0.0), rng)
+    return scan.points_xy_m()
+
+
+def test_a_thirty_degree_wing_is_learnt_only_after_travel_in_it() -> None:
+    opts = WallOptions()
+    rng = np.random.default_rng(4)
+    state = WallState()
+    assert observe(state, measure(_wing_scan(0.0, rng), opts), 0.0, 0.0, opts)  # the first family
+    wing = measure(_wing_scan(30.0, rng), opts)
+    assert wing is not None
+    assert wing.weight > 0.0
+    travelled = 0.0
+    while len(state.families_rad) == 1:
+        assert heading_prior(state, wing, 0.0, opts)[0] is None  # no prior in the wing yet
+        observe(state, measure(_wing_scan(30.0, rng), opts), 0.0, 0.3, opts)
+        travelled += 0.3
+        assert travelled < opts.new_family_travel_m + 1.0
+    assert travelled >= opts.new_family_travel_m - 0.31
+    assert (
+        abs(math.degrees(state.families_rad[1]) - 30.0) < 0.3
+        or abs(math.degrees(state.families_rad[1]) + 60.0) < 0.3
+    )
+    wall_rad, _ = heading_prior(state, measure(_wing_scan(30.0, rng), opts), 0.01, opts)
+    assert wall_rad is not None
+    assert abs(math.degrees(wall_rad)) < 0.3
+
+
+def test_clutter_never_becomes_a_wall_family() -> None:
+    opts = WallOptions()
+    rng = np.random.default_rng(5)
+    state = WallState()
+    observe(state, measure(_wing_scan(0.0, rng), opts), 0.0, 0.0, opts)
+    for _ in range(200):  # scattered points: a different direction, if any, every scan
+        clutter = rng.uniform(-6.0, 6.0, size=(300, 2))
+        observe(state, measure(clutter, opts), 0.0, 0.3, opts)
+    assert len(state.families_rad) == 1
+
+
+def test_the_front_end_follows_a_robot_through_a_room() -> None:
+    """Scans 0.1 m apart at 10 Hz along a known path: every pose within 3 cm and 0.3°."""
+    rng = np.random.default_rng(6)
+    fe = ScanMatcherFrontEnd()
+    start = Pose2D(1.5, 2.5, 0.2)
+    for i in range(40):
+        truth = Pose2D(1.5 + 0.1 * i, 2.5 + 0.02 * i, 0.2 + 0.01 * i)
+        est = fe.process(_scan(ROOM, truth, rng, stamp_ns=i * 100_000_000))
+        rel_true = start.between(truth)
+        assert math.hypot(est.x_m - rel_true.x_m, est.y_m - rel_true.y_m) < 0.03
+        assert abs(math.degrees(est.theta_rad - rel_true.theta_rad)) < 0.3
+        assert not est.flags & PoseFlag.DEGENERATE
+
+
+def _bad_scan(kind: str, stamp_ns: int, n: int) -> LaserScan:
+    ranges = {
+        "empty": np.zeros(0),
+        "max_range": np.full(n, MODEL.range_max_m),
+        "nan": np.full(n, np.nan),
+        "one_beam": np.array([2.0]),
+        "inf": np.full(n, np.inf),
+    }[kind]
+    return LaserScan(stamp_ns, MODEL.angle_min_rad, MODEL.angle_increment_rad, ranges, 0.1, 30.0)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    kind=st.sampled_from(["empty", "max_range", "nan", "one_beam", "inf", "backwards"]),
+    n=st.integers(min_value=1, max_value=1081),
+)
+def test_bad_scans_return_the_prediction_flagged_and_never_raise(kind: str, n: int) -> None:
+    rng = np.random.default_rng(7)
+    fe = ScanMatcherFrontEnd()
+    good = [Pose2D(2.0 + 0.05 * i, 3.0, 0.0) for i in range(3)]
+    last = None
+    for i, pose in enumerate(good):
+        last = fe.process(_scan(ROOM, pose, rng, stamp_ns=(i + 1) * 100_000_000))
+    assert last is not None
+    if kind == "backwards":
+        est = fe.process(_scan(ROOM, good[-1], rng, stamp_ns=100_000_000))
+        assert fe.stats.stamp_backwards == 1
+        assert est.pose == last.pose  # not matched: time does not go back
+    else:
+        est = fe.process(_bad_scan(kind, 400_000_000, n))
+        # The prediction: one more step of the motion so far, along x.
+        assert abs(est.y_m - last.y_m) < 0.02
+        assert est.x_m >= last.x_m - 0.02
+    assert est.flags & PoseFlag.DEGENERATE
+    assert not est.is_keyframe
+    # And it carries on: the next good scan is matched.
+    after = fe.process(_scan(ROOM, Pose2D(2.2, 3.0, 0.0), rng, stamp_ns=500_000_000))
+    assert not after.flags & PoseFlag.DEGENERATE
