@@ -83,6 +83,7 @@ class LikelihoodGrid:
         self.values: F32Array = np.zeros((0, 0), dtype=np.float32)
         self.density: F32Array = np.zeros((0, 0), dtype=np.float32)  # Σ of the hits' Gaussians
         self.inserted = 0  # scans inserted
+        self._costs: tuple[float, F32Array] | None = None  # (cap, `residual_costs`), a cache
         r = np.arange(-self.radius_cells, self.radius_cells + 1)
         self._di, self._dj = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
 
@@ -91,6 +92,7 @@ class LikelihoodGrid:
         """Add every hit's Gaussian to the surface density, renormalise the field around them,
         and mark the space their rays crossed as observed."""
         self.inserted += 1
+        self._costs = None
         if points_map_m.shape[0] == 0:
             return
         self._ensure(np.vstack((points_map_m, np.asarray([sensor_m]))))
@@ -241,14 +243,22 @@ class LikelihoodGrid:
         out[inside] = self.known[kr[inside], kc[inside]]
         return out
 
-    def lookup_cells(self, rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64]) -> FloatArray:
-        """Field at whole cells (any shape); 0 outside the grid."""
+    def residual_costs(self, max_residual_sigmas: float) -> F32Array:
+        """Per cell, the match's r² = -2 ln M (capped; unknown space at `unknown_score`), with
+        a border of unknown cells: the correlative search gathers from it with clipped indices
+        and no other test (it scores thousands of poses per scan)."""
+        if self._costs is not None and self._costs[0] == max_residual_sigmas:
+            return self._costs[1]
+        cap_sq = max_residual_sigmas**2
+        floor = math.exp(-0.5 * cap_sq)
+        unknown = -2.0 * math.log(min(max(self.unknown_score, floor), 1.0))
         h, w = self.values.shape
-        rows, cols = np.broadcast_arrays(rows, cols)
-        inside = (rows >= 0) & (cols >= 0) & (rows < h) & (cols < w)
-        out = np.full(rows.shape, self.unknown_score, dtype=np.float64)
+        known = np.repeat(np.repeat(self.known, _KNOWN_FACTOR, axis=0), _KNOWN_FACTOR, axis=1)
+        costs = np.full((h, w), unknown, dtype=np.float32)
+        field = np.clip(self.values[known], floor, 1.0)
+        costs[known] = -2.0 * np.log(field)
         if h and w:
-            out[inside] = self.values[rows[inside], cols[inside]]
-        known = self._known_at(rows, cols)
-        out[~known] = self.unknown_score
-        return out
+            costs[[0, -1], :] = unknown
+            costs[:, [0, -1]] = unknown
+        self._costs = (max_residual_sigmas, costs)
+        return costs

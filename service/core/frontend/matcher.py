@@ -133,11 +133,14 @@ def search(
     my = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + py
     rows0 = np.rint((my - grid.origin_m[1]) / res - 0.5).astype(np.int64)
     cols0 = np.rint((mx - grid.origin_m[0]) / res - 0.5).astype(np.int64)
+    costs = grid.residual_costs(opts.max_residual_sigmas)
+    h, w = costs.shape
+    if not h or not w:
+        return priors.predicted, 0
     for k in range(thetas.shape[0]):
-        rows = rows0[k][None, None, :] + di[:, None, None]
-        cols = cols0[k][None, None, :] + dj[None, :, None]
-        vals = grid.lookup_cells(rows, cols)  # (ny, nx, N)
-        scan_cost = opts.scan_weight * np.mean(_residual_sq(vals, opts), axis=2)
+        rows = np.clip(rows0[k][None, None, :] + di[:, None, None], 0, max(h - 1, 0))
+        cols = np.clip(cols0[k][None, None, :] + dj[None, :, None], 0, max(w - 1, 0))
+        scan_cost = opts.scan_weight * costs[rows, cols].mean(axis=2, dtype=np.float64)
         dx = dj[None, :] * res + np.zeros((di.shape[0], 1))
         dy = di[:, None] * res + np.zeros((1, dj.shape[0]))
         dt = wrap_angle(float(thetas[k]) - priors.predicted.theta_rad)
