@@ -87,6 +87,14 @@ class LikelihoodGrid:
         r = np.arange(-self.radius_cells, self.radius_cells + 1)
         self._di, self._dj = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
 
+    def __getstate__(self) -> dict[str, object]:
+        state = dict(self.__dict__)
+        state["_costs"] = None  # a cache, rebuilt on first use
+        return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+
     # ------------------------------------------------------------------ building
     def insert(self, points_map_m: FloatArray, sensor_m: tuple[float, float]) -> None:
         """Add every hit's Gaussian to the surface density, renormalise the field around them,

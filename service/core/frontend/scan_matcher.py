@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -22,7 +23,14 @@ from clients.wire import PoseFlag
 from service.core.frontend.likelihood import LikelihoodGrid
 from service.core.frontend.matcher import MatchOptions, Priors, match
 from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
-from service.core.types import Covariance3, FloatArray, LaserScan, Pose2D, PoseEstimate
+from service.core.types import (
+    Covariance3,
+    FloatArray,
+    LaserScan,
+    Pose2D,
+    PoseEstimate,
+    fields_by_name,
+)
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +75,26 @@ class FrontEndStats:
     scans: int = 0
     degenerate: int = 0
     stamp_backwards: int = 0  # scans not after the previous one: not matched
+
+
+STATE_VERSION = 1  # of `MatcherState`: a checkpoint of another version is refused, not guessed
+
+
+@dataclass
+class MatcherState:
+    """Everything the front end carries from one scan to the next: what a checkpoint saves."""
+
+    version: int
+    pose: Pose2D | None
+    stamp_ns: int | None
+    velocity: FloatArray  # (vx, vy, ω) per second, robot frame
+    velocity_cov: FloatArray
+    odom: Pose2D | None
+    submaps: list[LikelihoodGrid]
+    keyframe_pose: Pose2D | None
+    cov_since_keyframe: FloatArray
+    walls: WallState
+    stats: FrontEndStats
 
 
 def surface_points(
@@ -135,6 +163,39 @@ class ScanMatcherFrontEnd:
     @property
     def wall_families_rad(self) -> tuple[float, ...]:
         return tuple(self._walls.families_rad)
+
+    def state(self) -> MatcherState:
+        return MatcherState(
+            STATE_VERSION,
+            self._pose,
+            self._stamp_ns,
+            self._velocity,
+            self._velocity_cov,
+            self._odom,
+            self._submaps,
+            self._keyframe_pose,
+            self._cov_since_keyframe,
+            self._walls,
+            self.stats,
+        )
+
+    def __getstate__(self) -> dict[str, object]:
+        return {"params": fields_by_name(self.params), "state": self.state()}
+
+    def __setstate__(self, saved: dict[str, Any]) -> None:
+        state = saved["state"]
+        if not isinstance(state, MatcherState) or state.version != STATE_VERSION:
+            version = getattr(state, "version", None)
+            raise ValueError(f"front-end state version {version}, expected {STATE_VERSION}")
+        self.params = MatcherParams(**saved["params"])
+        self._pose, self._stamp_ns = state.pose, state.stamp_ns
+        self._velocity, self._velocity_cov = state.velocity, state.velocity_cov
+        self._odom, self._submaps = state.odom, state.submaps
+        self._keyframe_pose, self._cov_since_keyframe = (
+            state.keyframe_pose,
+            state.cov_since_keyframe,
+        )
+        self._walls, self.stats = state.walls, state.stats
 
     # ------------------------------------------------------------------ public
     def process(self, scan: LaserScan) -> PoseEstimate:

@@ -4,6 +4,7 @@ wall families, and bad scans (`service.core.frontend.matcher`, `walls`, `scan_ma
 from __future__ import annotations
 
 import math
+import pickle
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ from sensor_agent.sim.world import LaserModel, World, simulate_scan
 from service.core.frontend.likelihood import LikelihoodGrid
 from service.core.frontend.matcher import MatchOptions, Priors, match
 from service.core.frontend.scan_matcher import (
+    STATE_VERSION,
     MatcherParams,
     ScanMatcherFrontEnd,
     surface_points,
@@ -230,3 +232,24 @@ def test_bad_scans_return_the_prediction_flagged_and_never_raise(kind: str, n: i
     # And it carries on: the next good scan is matched.
     after = fe.process(_scan(ROOM, Pose2D(2.2, 3.0, 0.0), rng, stamp_ns=500_000_000))
     assert not after.flags & PoseFlag.DEGENERATE
+
+
+def test_a_checkpoint_carries_on_exactly_and_refuses_another_version() -> None:
+    """The front end pickles as a versioned `MatcherState`; restored, it gives the same poses
+    as the one that never stopped. A state of another version is refused, not guessed."""
+    rng = np.random.default_rng(8)
+    scans = [
+        _scan(ROOM, Pose2D(1.5 + 0.1 * i, 2.5, 0.02 * i), rng, stamp_ns=(i + 1) * 100_000_000)
+        for i in range(30)
+    ]
+    fe = ScanMatcherFrontEnd()
+    for scan in scans[:15]:
+        fe.process(scan)
+    blob = pickle.dumps(fe)
+    restored = pickle.loads(blob)
+    for scan in scans[15:]:
+        assert restored.process(scan) == fe.process(scan)
+    saved = fe.__getstate__()
+    saved["state"].version = STATE_VERSION + 1
+    with pytest.raises(ValueError, match="version"):
+        ScanMatcherFrontEnd().__setstate__(saved)
