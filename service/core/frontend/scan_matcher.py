@@ -3,8 +3,9 @@
     predict   constant velocity (or odometry), capped in time, σ growing with the gap
     match     one objective: the scan against the active submap + the motion prior + the walls'
               heading prior (`matcher`, `walls`)
-    update    velocity from the matched motion; the scan into the submaps when it moved enough;
-              the covariance relative to the latest keyframe (what the pose graph weighs)
+    update    the velocity's Kalman step, weighed by what the scan measured; the scan into the
+              submaps when it moved enough; the covariance relative to the latest keyframe
+              (what the pose graph weighs)
 
 Submaps are Cartographer's pair: every keyframe goes into the two newest; the older one, holding
 between `scans_per_submap` and twice that, is what the scan is matched against.
@@ -59,7 +60,8 @@ class MatcherParams:
     max_extrapolation_s: float = 0.5  # constant velocity is extrapolated at most this long
     accel_sigma_m_s2: float = 1.0  # the velocity's random walk (a Kalman filter) ...
     angular_accel_sigma_deg_s2: float = 90.0  # ... and the turn rate's
-    gap_speed_m_s: float = 0.5  # σ grows by this × the gap beyond max_extrapolation_s
+    gap_speed_m_s: float = 0.5  # σ grows by this × the gap beyond max_extrapolation_s ...
+    gap_turn_rate_deg_s: float = 60.0  # ... and σ_θ by this
     position_floor_m: float = 0.01
     heading_floor_deg: float = 0.2
     odometry_sigma_ratio: float = 0.1  # odometry's σ per metre / radian of its motion
@@ -252,9 +254,11 @@ class ScanMatcherFrontEnd:
             # The velocity's own uncertainty over the extrapolated time, and beyond it, what the
             # robot may have done during a pause nobody saw.
             var = np.diag(self._velocity_cov + self._velocity_noise(gap_s)) * t * t
-            beyond = max(0.0, gap_s - t) * p.gap_speed_m_s
-            sig_xy = math.sqrt(max(var[0], var[1]) + beyond**2) + p.position_floor_m
-            sig_t = math.sqrt(var[2] + (beyond / 0.5) ** 2) + math.radians(p.heading_floor_deg)
+            beyond_s = gap_s - t
+            sig_xy = math.sqrt(max(var[0], var[1]) + (p.gap_speed_m_s * beyond_s) ** 2)
+            sig_xy += p.position_floor_m
+            sig_t = math.sqrt(var[2] + math.radians(p.gap_turn_rate_deg_s * beyond_s) ** 2)
+            sig_t += math.radians(p.heading_floor_deg)
             flags = PoseFlag.NONE
         cov = np.diag([sig_xy**2, sig_xy**2, sig_t**2])
         return pose.compose(delta), cov, flags
