@@ -5,7 +5,7 @@ hit, exact, not snapped to the cell). The field is that density divided by its o
 within the stamp's radius: across a wall it is a Gaussian profile peaking at 1 on the *mean* of
 the wall's hits, so noisy hits from many scans sharpen the wall instead of widening it (a
 maximum of Gaussians would flatten its top by the noise). Smooth enough for Gauss-Newton on
-bilinear interpolation (hector's `ScanMatcher`), cheap enough to look up by cell in the
+bicubic interpolation (hector's `ScanMatcher` uses bilinear), cheap enough to look up by cell in the
 correlative search.
 
 Beside the field, a coarse mask of the space the submap's rays crossed: a point where no ray
@@ -21,6 +21,7 @@ import math
 import numpy as np
 import numpy.typing as npt
 
+from service.core.maps.submaps import sliding_max
 from service.core.types import FloatArray
 
 F32Array = npt.NDArray[np.float32]
@@ -30,20 +31,18 @@ _KNOWN_FACTOR = 4  # the observed-space mask's cell, in grid cells (0.2 m at 5 c
 
 
 def _local_max(grid: F32Array, radius: int) -> F32Array:
-    """out[i, j] = max of grid over the (2·radius + 1)² window centred on (i, j), clipped."""
-    out = grid.copy()
-    for axis in (0, 1):
-        src = out.copy()
-        n = src.shape[axis]
-        for shift in range(1, radius + 1):
-            if shift >= n:
-                break
-            lo = [slice(None)] * 2
-            hi = [slice(None)] * 2
-            lo[axis], hi[axis] = slice(0, n - shift), slice(shift, n)
-            np.maximum(out[tuple(lo)], src[tuple(hi)], out=out[tuple(lo)])
-            np.maximum(out[tuple(hi)], src[tuple(lo)], out=out[tuple(hi)])
-    return out
+    """out[i, j] = max of grid (≥ 0) over the (2·radius + 1)² window centred on (i, j): the
+    anchored `sliding_max` of the grid shifted by `radius` (zeros before it change no maximum)."""
+    h, w = grid.shape
+    shifted = np.pad(grid, ((radius, 0), (radius, 0)))
+    return sliding_max(shifted, 2 * radius + 1)[:h, :w]
+
+
+def residual_sq(field: npt.NDArray[np.floating], max_residual_sigmas: float) -> FloatArray:
+    """The match's r² = -2 ln M at field values M (d²/σ² to the nearest surface), capped at
+    max_residual_sigmas²."""
+    floor = math.exp(-0.5 * max_residual_sigmas**2)
+    return np.asarray(-2.0 * np.log(np.clip(field, floor, 1.0)))
 
 
 def _catmull_rom(t: FloatArray) -> tuple[list[FloatArray], list[FloatArray]]:
@@ -92,9 +91,6 @@ class LikelihoodGrid:
         state["_costs"] = None  # a cache, rebuilt on first use
         return state
 
-    def __setstate__(self, state: dict[str, object]) -> None:
-        self.__dict__.update(state)
-
     # ------------------------------------------------------------------ building
     def insert(self, points_map_m: FloatArray, sensor_m: tuple[float, float]) -> None:
         """Add every hit's Gaussian to the surface density, renormalise the field around them,
@@ -106,8 +102,7 @@ class LikelihoodGrid:
         self._ensure(np.vstack((points_map_m, np.asarray([sensor_m]))))
         self._observe(points_map_m, sensor_m)
         res = self.resolution_m
-        u = (points_map_m[:, 0] - self.origin_m[0]) / res - 0.5  # continuous column
-        v = (points_map_m[:, 1] - self.origin_m[1]) / res - 0.5  # continuous row
+        v, u = self.cell_coords(points_map_m)
         ci, cj = np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)
         ii = ci[:, None] + self._di[None, :]
         jj = cj[:, None] + self._dj[None, :]
@@ -257,14 +252,11 @@ class LikelihoodGrid:
         and no other test (it scores thousands of poses per scan)."""
         if self._costs is not None and self._costs[0] == max_residual_sigmas:
             return self._costs[1]
-        cap_sq = max_residual_sigmas**2
-        floor = math.exp(-0.5 * cap_sq)
-        unknown = -2.0 * math.log(min(max(self.unknown_score, floor), 1.0))
+        unknown = float(residual_sq(np.asarray(self.unknown_score), max_residual_sigmas))
         h, w = self.values.shape
         known = np.repeat(np.repeat(self.known, _KNOWN_FACTOR, axis=0), _KNOWN_FACTOR, axis=1)
         costs = np.full((h, w), unknown, dtype=np.float32)
-        field = np.clip(self.values[known], floor, 1.0)
-        costs[known] = -2.0 * np.log(field)
+        costs[known] = residual_sq(self.values[known], max_residual_sigmas)
         if h and w:
             costs[[0, -1], :] = unknown
             costs[:, [0, -1]] = unknown

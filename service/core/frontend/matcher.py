@@ -31,8 +31,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.frontend.likelihood import LikelihoodGrid
-from service.core.types import FloatArray, Pose2D, wrap_angle
+from service.core.frontend.likelihood import LikelihoodGrid, residual_sq
+from service.core.types import FloatArray, Pose2D, rotate_points, wrap_angle
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,14 +68,6 @@ class MatchResult:
     searched_cells: int  # poses scored by the search
 
 
-def _transform(points_xy_m: FloatArray, pose: Pose2D) -> FloatArray:
-    c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-    out = np.empty_like(points_xy_m)
-    out[:, 0] = c * points_xy_m[:, 0] - s * points_xy_m[:, 1] + pose.x_m
-    out[:, 1] = s * points_xy_m[:, 0] + c * points_xy_m[:, 1] + pose.y_m
-    return out
-
-
 def _delta(pose: Pose2D, ref: Pose2D) -> FloatArray:
     return np.array(
         [pose.x_m - ref.x_m, pose.y_m - ref.y_m, wrap_angle(pose.theta_rad - ref.theta_rad)]
@@ -97,6 +89,10 @@ def search(
     grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
 ) -> tuple[Pose2D, int]:
     """The lowest-cost pose on the search lattice around the prediction (cell lookup)."""
+    costs = grid.residual_costs(opts.max_residual_sigmas)
+    h, w = costs.shape
+    if not h or not w:
+        return priors.predicted, 0
     pts = points_xy_m
     if pts.shape[0] > opts.search_points:
         pts = pts[np.linspace(0, pts.shape[0] - 1, opts.search_points).astype(np.int64)]
@@ -133,22 +129,21 @@ def search(
     my = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + py
     rows0 = np.rint((my - grid.origin_m[1]) / res - 0.5).astype(np.int64)
     cols0 = np.rint((mx - grid.origin_m[0]) / res - 0.5).astype(np.int64)
-    costs = grid.residual_costs(opts.max_residual_sigmas)
-    h, w = costs.shape
-    if not h or not w:
-        return priors.predicted, 0
+    # The motion prior's terms in translation alone, the same for every rotation.
+    dx = dj[None, :] * res + np.zeros((di.shape[0], 1))
+    dy = di[:, None] * res + np.zeros((1, dj.shape[0]))
+    prior_xx, prior_yy = info_pred[0, 0] * dx * dx, info_pred[1, 1] * dy * dy
+    prior_xy = 2.0 * info_pred[0, 1] * dx * dy
     for k in range(thetas.shape[0]):
-        rows = np.clip(rows0[k][None, None, :] + di[:, None, None], 0, max(h - 1, 0))
-        cols = np.clip(cols0[k][None, None, :] + dj[None, :, None], 0, max(w - 1, 0))
+        rows = np.clip(rows0[k][None, None, :] + di[:, None, None], 0, h - 1)
+        cols = np.clip(cols0[k][None, None, :] + dj[None, :, None], 0, w - 1)
         scan_cost = opts.scan_weight * costs[rows, cols].mean(axis=2, dtype=np.float64)
-        dx = dj[None, :] * res + np.zeros((di.shape[0], 1))
-        dy = di[:, None] * res + np.zeros((1, dj.shape[0]))
         dt = wrap_angle(float(thetas[k]) - priors.predicted.theta_rad)
         prior = (
-            info_pred[0, 0] * dx * dx
-            + info_pred[1, 1] * dy * dy
+            prior_xx
+            + prior_yy
             + info_pred[2, 2] * dt * dt
-            + 2.0 * info_pred[0, 1] * dx * dy
+            + prior_xy
             + 2.0 * info_pred[0, 2] * dx * dt
             + 2.0 * info_pred[1, 2] * dy * dt
         )
@@ -165,21 +160,15 @@ def search(
     return best[1], int(thetas.shape[0] * di.shape[0] * dj.shape[0])
 
 
-def _residual_sq(value: FloatArray, opts: MatchOptions) -> FloatArray:
-    """r² = -2 ln M, capped at max_residual_sigmas²."""
-    floor = math.exp(-0.5 * opts.max_residual_sigmas**2)
-    return np.asarray(-2.0 * np.log(np.clip(value, floor, 1.0)))
-
-
 def _scan_terms(
     grid: LikelihoodGrid, pts: FloatArray, pose: Pose2D, opts: MatchOptions
 ) -> tuple[float, FloatArray, FloatArray, float]:
     """Scan cost, its gradient and Gauss-Newton Hessian at `pose` (halved), and the mean
     field value."""
     n = pts.shape[0]
-    q = _transform(pts, pose)
+    q = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
     value, grad = grid.interpolate(q)
-    r_sq = _residual_sq(value, opts)
+    r_sq = residual_sq(value, opts.max_residual_sigmas)
     r = np.sqrt(r_sq)
     inlier = (r < opts.max_residual_sigmas) & (value > 0.0)
     # ∂(r²/2)/∂q = -∇M / M, exact; the Gauss-Newton Jacobian ∂r/∂q = -∇M / (M r) with r held

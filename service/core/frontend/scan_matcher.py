@@ -24,6 +24,7 @@ from clients.wire import PoseFlag
 from service.core.frontend.likelihood import LikelihoodGrid
 from service.core.frontend.matcher import MatchOptions, Priors, match
 from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
+from service.core.maps.submaps import voxel_thin
 from service.core.types import (
     Covariance3,
     FloatArray,
@@ -31,9 +32,14 @@ from service.core.types import (
     Pose2D,
     PoseEstimate,
     fields_by_name,
+    frozen_array,
+    rotate_points,
 )
 
 log = logging.getLogger(__name__)
+
+# The velocity's covariance where nothing is known of it (the start, after a pause): 1 m/s, 1 rad/s.
+_UNKNOWN_VELOCITY_COV = frozen_array(np.diag([1.0, 1.0, 1.0]))
 
 
 @dataclass(frozen=True, slots=True)
@@ -128,16 +134,6 @@ def surface_points(
     return np.vstack((dense, points_xy_m[~touches]))
 
 
-def voxel_thin(points_xy_m: FloatArray, voxel_m: float) -> FloatArray:
-    """The first point of every occupied voxel, in scan order."""
-    if points_xy_m.shape[0] == 0:
-        return points_xy_m
-    keys = np.floor(points_xy_m / voxel_m).astype(np.int64)
-    packed = keys[:, 0] * 1_000_003 + keys[:, 1]
-    _, first = np.unique(packed, return_index=True)
-    return np.asarray(points_xy_m[np.sort(first)], dtype=np.float64)
-
-
 def _covariance3(m: FloatArray) -> Covariance3:
     a = [float(v) for v in m.ravel()]
     return (a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
@@ -154,7 +150,7 @@ class ScanMatcherFrontEnd:
         self._pose: Pose2D | None = None
         self._stamp_ns: int | None = None
         self._velocity = np.zeros(3)  # (vx, vy, ω) per second, robot frame
-        self._velocity_cov = np.diag([1.0, 1.0, 1.0])  # its covariance: unknown at first
+        self._velocity_cov = _UNKNOWN_VELOCITY_COV  # its covariance
         self._odom: Pose2D | None = None
         self._submaps: list[LikelihoodGrid] = []
         self._keyframe_pose: Pose2D | None = None
@@ -222,11 +218,8 @@ class ScanMatcherFrontEnd:
             return self._degenerate(scan, predicted, cov, flags)
 
     # ------------------------------------------------------------------ steps
-    def _points(self, scan: LaserScan) -> FloatArray:
-        ranges = np.asarray(scan.ranges_m, dtype=np.float64)
-        if ranges.ndim != 1 or ranges.size == 0:
-            return np.zeros((0, 2))
-        pts = scan.points_xy_m()
+    def _points(self, scan: LaserScan, pts: FloatArray) -> FloatArray:
+        """The returns `pts` (laser frame) that are matched: within reach, one per voxel."""
         # Matched within the sensor's reach less a margin: the submap's walls end where the
         # last keyframes' reach ended, and a point past that end would pull the scan back.
         reach_m = min(self.params.max_range_m, scan.range_max_m) - self.params.reach_margin_m
@@ -265,7 +258,9 @@ class ScanMatcherFrontEnd:
 
     def _process(self, scan: LaserScan) -> PoseEstimate:
         p = self.params
-        pts = self._points(scan)
+        ranges = np.asarray(scan.ranges_m, dtype=np.float64)
+        returns = scan.points_xy_m() if ranges.ndim == 1 and ranges.size else np.zeros((0, 2))
+        pts = self._points(scan, returns)
         predicted, cov_pred, flags = self._predict(scan)
         if pts.shape[0] < p.min_points:
             return self._degenerate(scan, predicted, cov_pred, flags)
@@ -298,7 +293,7 @@ class ScanMatcherFrontEnd:
         self._update_motion(scan, pose, h_scan)
         keyframe = self._is_keyframe(pose)
         if keyframe:
-            self._insert(scan, pose)
+            self._insert(scan, returns, pose)
             self._cov_since_keyframe = np.zeros((3, 3))
         else:
             self._cov_since_keyframe = cov
@@ -358,7 +353,7 @@ class ScanMatcherFrontEnd:
                 self._velocity_cov = (np.eye(3) - gain) @ p_v
             elif gap_s > self.params.max_extrapolation_s:
                 self._velocity = np.zeros(3)  # after a pause: at rest until it moves again
-                self._velocity_cov = np.diag([1.0, 1.0, 1.0])
+                self._velocity_cov = _UNKNOWN_VELOCITY_COV
         self._pose = pose
         self._stamp_ns = scan.stamp_ns
         if scan.odom is not None:
@@ -373,16 +368,14 @@ class ScanMatcherFrontEnd:
             d.theta_rad
         ) >= math.radians(self.params.keyframe_angle_deg)
 
-    def _insert(self, scan: LaserScan, pose: Pose2D) -> None:
+    def _insert(self, scan: LaserScan, returns: FloatArray, pose: Pose2D) -> None:
         p = self.params
         self._keyframe_pose = pose
-        pts = scan.points_xy_m()
-        pts = pts[np.hypot(pts[:, 0], pts[:, 1]) <= min(p.max_range_m, scan.range_max_m)]
+        pts = returns[
+            np.hypot(returns[:, 0], returns[:, 1]) <= min(p.max_range_m, scan.range_max_m)
+        ]
         pts = surface_points(pts, p.surface_max_gap_m, p.surface_gap_per_range, p.resolution_m / 2)
-        c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-        world = np.column_stack(
-            (c * pts[:, 0] - s * pts[:, 1] + pose.x_m, s * pts[:, 0] + c * pts[:, 1] + pose.y_m)
-        )
+        world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
         if not self._submaps or self._submaps[-1].inserted >= p.scans_per_submap:
             self._submaps.append(LikelihoodGrid(p.resolution_m, p.hit_sigma_m, p.unknown_score))
         for grid in self._submaps:

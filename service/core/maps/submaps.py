@@ -70,7 +70,7 @@ class LikelihoodField:
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         fine = np.asarray(state["fine"], dtype=np.float32)
-        coarse = _sliding_max(fine, int(state["coarse_factor"]))
+        coarse = sliding_max(fine, int(state["coarse_factor"]))
         np.maximum(coarse, np.float32(state["unknown_value"]), out=coarse)
         values = {
             **state,
@@ -128,7 +128,7 @@ def voxel_thin(points_m: FloatArray, voxel_m: float) -> FloatArray:
     return out
 
 
-def _sliding_max(grid: F32Array, k: int) -> F32Array:
+def sliding_max(grid: F32Array, k: int) -> F32Array:
     """out[i, j] = max of grid[i:i+k, j:j+k] (clipped at the far edges)."""
     out = grid.copy()
     for axis in (0, 1):
@@ -206,7 +206,7 @@ def likelihood_field(
     for offset, value in zip((di * w + dj).ravel().tolist(), bump.ravel().tolist(), strict=True):
         idx = cells + offset
         flat[idx] = np.maximum(flat[idx], np.float32(value))
-    coarse = _sliding_max(fine, params.coarse_factor) if bound else np.zeros((0, 0), np.float32)
+    coarse = sliding_max(fine, params.coarse_factor) if bound else np.zeros((0, 0), np.float32)
     if dense is not None and dense.size:
         seen = np.zeros((h, w), dtype=np.float32)
         r0, c0 = int(ci0 - lo[1]), int(cj0 - lo[0])

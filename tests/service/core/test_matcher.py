@@ -74,7 +74,7 @@ def _grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
 
 
 def _points(scan: LaserScan) -> np.ndarray:
-    return ScanMatcherFrontEnd()._points(scan)
+    return ScanMatcherFrontEnd()._points(scan, scan.points_xy_m())
 
 
 @pytest.mark.parametrize("shift", [(0.12, -0.07, 2.0), (-0.2, 0.15, -4.0), (0.03, 0.01, 0.3)])
