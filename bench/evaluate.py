@@ -29,13 +29,16 @@ import time
 from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from clients.wire import OdometryPose, PoseFlag, Scan
 from service.core.metrics import Relation, RelationErrors, parse_relations, relation_errors
 from service.core.types import Pose2D, wrap_angle
+
+if TYPE_CHECKING:
+    from service.core.slam import FrontEndName
 
 log = logging.getLogger(__name__)
 
@@ -207,10 +210,6 @@ def _worst(
     ]
 
 
-# The front end every run uses (`--front-end`): a setting of the whole evaluation.
-FRONT_END: list[Literal["manhattan", "matcher"]] = ["manhattan"]
-
-
 def _run_mapper(
     scans: Iterator[Scan],
     *,
@@ -221,6 +220,7 @@ def _run_mapper(
     input_info: dict[str, Any],
     on_estimate: Any = None,
     loop_closure: bool = True,
+    front_end: FrontEndName = "manhattan",
 ) -> tuple[Any, dict[str, Any], Path]:
     from service.offline import map_scans, write_outputs
 
@@ -231,7 +231,7 @@ def _run_mapper(
         progress=_progress_enabled(),
         on_estimate=on_estimate,
         loop_closure=loop_closure,
-        front_end=FRONT_END[0],
+        front_end=front_end,
     )
     run_dir = out_dir / name
     report = write_outputs(run, run_dir, input_info=input_info)
@@ -297,6 +297,7 @@ def evaluate_real(
     quick: bool,
     out_dir: Path,
     loop_closure: bool = True,
+    front_end: FrontEndName = "manhattan",
 ) -> RunResult:
     from clients.logs import iter_log_scans, probe_log
     from service.offline import input_summary
@@ -319,6 +320,7 @@ def evaluate_real(
     run, report, png = _run_mapper(
         scans, use_odometry=use_odometry, total=total, out_dir=out_dir, name=name,
         input_info=summary, on_estimate=keep_odometry, loop_closure=loop_closure,
+        front_end=front_end,
     )  # fmt: skip
     all_relations = parse_relations(dataset.relations.read_text().splitlines())
     relations, missing = _match_relations(run.stamps_ns, all_relations)
@@ -575,12 +577,18 @@ def truth_relations(
 
 
 def evaluate_synthetic(
-    seq: SyntheticSequence, *, use_odometry: bool, out_dir: Path, loop_closure: bool = True
+    seq: SyntheticSequence,
+    *,
+    use_odometry: bool,
+    out_dir: Path,
+    loop_closure: bool = True,
+    front_end: FrontEndName = "manhattan",
 ) -> RunResult:
     name = _slug(f"synthetic-{seq.seed}", use_odometry, loop_closure)
     run, report, png = _run_mapper(
         iter(seq.scans),
         loop_closure=loop_closure,
+        front_end=front_end,
         use_odometry=use_odometry,
         total=len(seq.scans),
         out_dir=out_dir,
@@ -898,6 +906,7 @@ def evaluate(
     out_dir: Path = DEFAULT_OUT,
     seeds: Sequence[int] | None = None,
     datasets: Sequence[str] | None = None,
+    front_end: FrontEndName = "manhattan",
 ) -> Evaluation:
     """Run every evaluation, write `accuracy.md` and `accuracy.json` into `out_dir`."""
     start = time.perf_counter()
@@ -919,6 +928,7 @@ def evaluate(
                     quick=quick,
                     out_dir=out_dir,
                     loop_closure=loop_closure,
+                    front_end=front_end,
                 )
             )
             _log_result(real[-1])
@@ -930,7 +940,11 @@ def evaluate(
             for use_odometry, loop_closure in _MODES:
                 synthetic.append(
                     evaluate_synthetic(
-                        seq, use_odometry=use_odometry, out_dir=out_dir, loop_closure=loop_closure
+                        seq,
+                        use_odometry=use_odometry,
+                        out_dir=out_dir,
+                        loop_closure=loop_closure,
+                        front_end=front_end,
                     )
                 )
                 _log_result(synthetic[-1])
@@ -997,13 +1011,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("-v", "--verbose", action="store_true")
     args = parser.parse_args(argv)
-    FRONT_END[0] = args.front_end
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:
-        result = evaluate(quick=args.quick, out_dir=args.out, seeds=args.seed, datasets=args.only)
+        result = evaluate(
+            quick=args.quick,
+            out_dir=args.out,
+            seeds=args.seed,
+            datasets=args.only,
+            front_end=args.front_end,
+        )
     except KeyboardInterrupt:
         return 130
     print(result.markdown)
