@@ -7,15 +7,20 @@ import pytest
 import service.cli as service_cli
 
 
-@pytest.mark.parametrize("module", ["service.cli", "sensor_agent.cli", "clients.cli"])
-def test_help_works(module: str) -> None:
-    out = subprocess.run(
-        [sys.executable, "-m", module, "--help"],
+def _help(module: str, *args: str) -> subprocess.CompletedProcess[str]:
+    """`python -m module [args] --help`, run for real."""
+    return subprocess.run(
+        [sys.executable, "-m", module, *args, "--help"],
         check=False,
         capture_output=True,
         text=True,
         timeout=60,
     )
+
+
+@pytest.mark.parametrize("module", ["service.cli", "sensor_agent.cli", "clients.cli"])
+def test_help_works(module: str) -> None:
+    out = _help(module)
     assert out.returncode == 0, out.stderr
     assert "usage:" in out.stdout
 
@@ -41,12 +46,6 @@ def test_verbose_is_accepted_before_and_after_the_command(
 
 
 def test_every_subcommand_lists_verbose() -> None:
-    out = subprocess.run(
-        [sys.executable, "-m", "service.cli", "serve", "--help"],
-        check=False,
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+    out = _help("service.cli", "serve")
     assert out.returncode == 0, out.stderr
     assert "-v, --verbose" in out.stdout
