@@ -37,7 +37,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import zenoh
 
@@ -47,7 +47,7 @@ from service.app.errors import ServiceError
 from service.app.limits import ROS_TIME_MAX_NS, in_ros_time
 from service.app.metrics import SCAN_SECONDS_BUCKETS, Labels, Metrics, labels
 from service.app.publishers import source_id_of
-from service.app.sessions import DEFERRED, Ingested, SessionManager
+from service.app.sessions import DEFERRED, Ingested
 from service.app.settings import IngestSettings
 
 log = logging.getLogger(__name__)
@@ -147,6 +147,24 @@ class RobotStatus:
 
 
 @dataclass(frozen=True, slots=True)
+class IngestStats:
+    """What a mapper process's ingest reports to the service now and then (with
+    `ingest_in_mappers`): small, one entry per robot it tracks (at most `max_robots`)."""
+
+    robots: tuple[RobotStatus, ...]
+    newcomers_queued: int
+    robots_forgotten: int
+    store_errors: int
+
+
+class SessionLookup(Protocol):
+    """Where ingest finds a robot's active session (`SessionManager`, or a mapper process's
+    table of the sessions it holds leases for)."""
+
+    def active_for(self, robot_id: str) -> Any: ...
+
+
+@dataclass(frozen=True, slots=True)
 class IngestSummary:
     """Counts for /health: one entry per reason, never one per robot id."""
 
@@ -167,7 +185,7 @@ class Ingest:
     def __init__(
         self,
         prefix: str,
-        sessions: SessionManager,
+        sessions: SessionLookup,
         publish: Callable[[Pose, bytes | None], None],
         metrics: Metrics,
         settings: IngestSettings,
@@ -201,8 +219,11 @@ class Ingest:
         self._workers: list[threading.Thread] = []
         self._closing = False
         self._next_sweep_ns = 0
-        self.store_errors = 0
+        self._store_errors = 0
         self.robots_forgotten = 0
+        # Mapper processes that ingest themselves report here (key: the process), so that
+        # /health and /metrics count their robots as ours.
+        self.remote: dict[str, IngestStats] = {}
         # (reason, robot) -> (monotonic ns of its last line, occurrences only counted since)
         self._logged: dict[tuple[str, str], tuple[int, int]] = {}
         self._logged_lock = threading.Lock()
@@ -587,8 +608,21 @@ class Ingest:
                 log.exception("a scan observer failed on %s", robot_id)
         self._metrics.observe(SCAN_SECONDS, time.perf_counter() - t0)
 
+    @property
+    def store_errors(self) -> int:
+        return self._store_errors + sum(r.store_errors for r in list(self.remote.values()))
+
+    def stats(self) -> IngestStats:
+        """This ingest's own counts, for the service (in a mapper process)."""
+        return IngestStats(
+            tuple(self._robots()),
+            len(self._newcomers.items),
+            self.robots_forgotten,
+            self._store_errors,
+        )
+
     def _store_error(self, robot_id: str, detail: str) -> None:
-        self.store_errors += 1
+        self._store_errors += 1
         self._metrics.inc(SCANS_DROPPED, robot=robot_id, reason="store_error")
         self._log_once("store_error", robot_id, f"could not record the scan: {detail}")
 
@@ -625,7 +659,7 @@ class Ingest:
                 who, message, reason, _LOG_AGAIN_S)  # fmt: skip
 
     def _depths(self) -> list[tuple[Labels, float]]:
-        return [(labels(robot=s.robot_id), float(s.queue_depth)) for s in self.robots()]
+        return [(labels(robot=s.robot_id), float(s.queue_depth)) for s in self._robots()]
 
     def _tracked(self) -> list[tuple[Labels, float]]:
         return [((), float(len(self._queues)))]
@@ -634,6 +668,13 @@ class Ingest:
         return [((), float(len(self._newcomers.items)))]
 
     def robots(self) -> list[RobotStatus]:
+        """Every robot tracked, here and in the mapper processes that ingest."""
+        out = self._robots()
+        for remote in list(self.remote.values()):
+            out.extend(remote.robots)
+        return sorted(out, key=lambda r: r.robot_id)
+
+    def _robots(self) -> list[RobotStatus]:
         with self._lock:
             queues = list(self._queues.values())
         return [
@@ -649,11 +690,12 @@ class Ingest:
         def by(name: str, label: str) -> dict[str, int]:
             return {k: int(v) for k, v in sorted(m.by_label(name, label).items())}
 
+        remote = list(self.remote.values())
         return IngestSummary(
-            robots_tracked=len(self._queues),
+            robots_tracked=len(self._queues) + sum(len(r.robots) for r in remote),
             max_robots=self._settings.max_robots,
-            robots_forgotten=self.robots_forgotten,
-            newcomers_queued=len(self._newcomers.items),
+            robots_forgotten=self.robots_forgotten + sum(r.robots_forgotten for r in remote),
+            newcomers_queued=len(self._newcomers.items) + sum(r.newcomers_queued for r in remote),
             scans_accepted=int(m.total(SCANS_ACCEPTED)),
             scans_unmapped=int(m.total(SCANS_UNMAPPED)),
             scans_rejected=by(SCANS_REJECTED, "reason"),
