@@ -46,7 +46,7 @@ from clients.wire import DecodeError, Pose, Scan, decode_scan, is_valid_robot_id
 from service.app.errors import ServiceError
 from service.app.limits import ROS_TIME_MAX_NS, in_ros_time
 from service.app.metrics import SCAN_SECONDS_BUCKETS, Labels, Metrics, labels
-from service.app.publishers import source_id_of
+from service.app.publishers import PublisherStatus, source_id_of
 from service.app.sessions import DEFERRED, Ingested
 from service.app.settings import IngestSettings
 
@@ -71,6 +71,7 @@ ROBOTS_TRACKED = "mapping_ingest_robots"
 ROBOTS_LIMIT = "mapping_ingest_max_robots"
 ROBOTS_FORGOTTEN = "mapping_ingest_robots_forgotten_total"
 NEWCOMERS_QUEUED = "mapping_ingest_newcomer_queue_depth"
+PAYLOADS = "mapping_ingest_payloads_total"
 STAMP_ANOMALIES = "mapping_scan_stamp_anomalies_total"
 # Series of a robot that go when the robot is forgotten.
 _PER_ROBOT = (SCANS_UNMAPPED, SCANS_DROPPED, STAMP_ANOMALIES)
@@ -96,6 +97,11 @@ def declare_metrics(
         "Scans of a robot with a session whose host stamp was out of ROS time, not after the "
         "previous one (refused: stamp_out_of_range, stamp_backwards, stamp_duplicate) or beyond "
         "the gap limit after it (mapped: stamp_gap).",
+    )
+    metrics.counter(
+        PAYLOADS,
+        "Scan payloads taken in, by process: main (the service's) or mapper-<i> (mapper "
+        "processes that ingest their robots' scans themselves).",
     )
     metrics.counter(ROBOTS_FORGOTTEN, "Robots without a session forgotten after falling silent.")
     metrics.gauge(ROBOTS_TRACKED, "Robots with ingest state (a queue).", tracked)
@@ -155,6 +161,7 @@ class IngestStats:
     newcomers_queued: int
     robots_forgotten: int
     store_errors: int
+    publishers: tuple[PublisherStatus, ...] = ()  # the process's guard, for its robots
 
 
 class SessionLookup(Protocol):
@@ -192,11 +199,13 @@ class Ingest:
         *,
         admit: Callable[[str, str | None], bool] | None = None,
         forget: Callable[[str], None] | None = None,
+        process: str = "main",
     ) -> None:
         """`admit(robot_id, source_id)` may refuse a scan before it is queued (it counts and
         logs that itself): `PublisherGuard.admit`, against a second publisher on a key.
         `forget(robot_id)` is told when a silent robot without a session is forgotten."""
         self._prefix = prefix
+        self._process = process
         self._admit = admit
         self._forget = forget
         self._sessions = sessions
@@ -252,6 +261,7 @@ class Ingest:
     def submit(self, key: str, payload: bytes, source: str | None = None) -> None:
         """Queue one payload received on `key` from publisher `source` (its Zenoh id, if
         known); non-blocking, drops the oldest when full."""
+        self._metrics.inc(PAYLOADS, process=self._process)
         robot_id = robot_id_from_key(key, self._prefix)
         if robot_id is None or not is_valid_robot_id(robot_id):
             self._reject("bad_key", "?", key[:120], tracked=False)

@@ -431,12 +431,19 @@ def _serve(
     conn: multiprocessing.connection.Connection,
     engine: Engine,
     ingest_cfg: IngestConfig | None = None,
+    log_level: int = logging.WARNING,
 ) -> None:
     """A mapper process: answer calls and map forwarded scans, in the order they come, until
     the pipe closes. With `ingest_cfg` it also ingests its share of the robots' scans from
     Zenoh itself (service/app/mapper_ingest.py)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops us by closing the pipe
     _die_with_parent()
+    # A spawned process starts without the service's logging: the same lines, with its name.
+    logging.basicConfig(
+        level=log_level,
+        format=f"%(asctime)s %(levelname)-7s [mapper-{os.getpid()}] %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
     mappers: dict[str, LocalMapper] = {}
     leases: dict[str, _Lease] = {}
     # The pipe loop and the ingest worker both use mappers and leases: one at a time.
@@ -613,7 +620,7 @@ class MapperProcess:
         parent, child = ctx.Pipe()
         process = ctx.Process(
             target=_serve,
-            args=(child, self._engine, self.ingest),
+            args=(child, self._engine, self.ingest, logging.getLogger().getEffectiveLevel()),
             name=f"mapper-{self.index}",
             daemon=True,
         )

@@ -21,6 +21,7 @@ it comes (`delegated`).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 import threading
@@ -32,13 +33,20 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 import zenoh
 
 from clients.fleet import RobotPatterns
-from clients.keyexpr import pose_key, robot_id_from_key, scan_wildcard
+from clients.keyexpr import (
+    pose_key,
+    publisher_alive_wildcard,
+    publisher_from_alive_key,
+    robot_id_from_key,
+    scan_wildcard,
+)
 from clients.wire import Pose, Scan, encode_pose
 from clients.zenoh_config import build_zenoh_config
 from service.app.fanout import POSE_PUBLISH_ERRORS, POSES_PUBLISHED
-from service.app.ingest import Ingest
+from service.app.ingest import SCANS_REJECTED, Ingest
 from service.app.mapper import Done, LeaseSpec, flat_done, make_pose
 from service.app.metrics import Metrics
+from service.app.publishers import DUPLICATE_PUBLISHERS, PublisherGuard
 from service.app.sessions import HELD_SCANS_MAX, Ingested, moved_pose
 from service.app.settings import IngestSettings
 
@@ -111,9 +119,6 @@ class ProcessIngest:
         self._leases = leases
         self._send = send
         self._robots: dict[str, ProcessSession] = {}
-        # Robots with an active session -> the process that takes their scans (the service
-        # assigns them, tells every process); the others go by `owner`.
-        self._assigned: dict[str, int] = {}
         self._patterns = RobotPatterns(cfg.patterns)
         self.metrics = Metrics()
         self.metrics.counter(POSES_PUBLISHED, "Poses published on Zenoh.")
@@ -126,7 +131,30 @@ class ProcessIngest:
                 "max_robots": max(1, -(-cfg.settings.max_robots // cfg.processes)),
             }
         )
-        self.ingest = Ingest(cfg.prefix, self, self.publish, self.metrics, settings)
+        self.metrics.counter(
+            DUPLICATE_PUBLISHERS,
+            "Second publishers detected on a robot's key (their scans are refused).",
+        )
+        # The second-publisher guard needs the scans' source ids: it runs where they arrive.
+        # Every process follows every robot's publisher tokens (ownership can move).
+        # Robots with an active session -> the process that takes their scans (the service
+        # assigns them, tells every process); the others go by `owner`.
+        self._assigned: dict[str, int] = {}
+        self.publishers = PublisherGuard(
+            speaks_for=self._mine,
+            on_refused=lambda robot: self.metrics.inc(SCANS_REJECTED, reason="duplicate_publisher"),
+            on_intruder=lambda robot: self.metrics.inc(DUPLICATE_PUBLISHERS, robot=robot),
+        )
+        self.ingest = Ingest(
+            cfg.prefix,
+            self,
+            self.publish,
+            self.metrics,
+            settings,
+            admit=self.publishers.admit,
+            forget=self.publishers.forget,
+            process=f"mapper-{cfg.index}",
+        )
         self._zenoh: zenoh.Session | None = None
         self._subscribers: list[Any] = []
         self._publishers: dict[str, zenoh.Publisher] = {}
@@ -145,6 +173,13 @@ class ProcessIngest:
             on_scan = self._callback(index if len(patterns) > 1 else None)
             self._subscribers.append(
                 self._zenoh.declare_subscriber(scan_wildcard(cfg.prefix, pattern), on_scan)
+            )
+            self._subscribers.append(
+                self._zenoh.liveliness().declare_subscriber(
+                    publisher_alive_wildcard(cfg.prefix, pattern),
+                    self._on_publisher_alive,
+                    history=True,
+                )
             )
         self._stats = threading.Thread(target=self._report, name="ingest-stats", daemon=True)
         self._stats.start()
@@ -202,10 +237,24 @@ class ProcessIngest:
 
         return on_scan
 
+    def _on_publisher_alive(self, sample: Any) -> None:
+        parsed = publisher_from_alive_key(str(sample.key_expr), self._cfg.prefix)
+        if parsed is not None:
+            robot_id, source = parsed
+            self.publishers.token_changed(robot_id, source, sample.kind == zenoh.SampleKind.PUT)
+
+    def _mine(self, robot_id: str) -> bool:
+        taker = self._assigned.get(robot_id)
+        if taker is None:
+            taker = owner(robot_id, self._cfg.processes)
+        return taker == self._cfg.index
+
     def _report(self) -> None:
         while not self._stop.wait(STATS_PERIOD_S):
             try:
-                self._send(("stats", self.metrics.export(), self.ingest.stats()))
+                publishers = tuple(p for p in self.publishers.status() if self._mine(p.robot_id))
+                stats = dataclasses.replace(self.ingest.stats(), publishers=publishers)
+                self._send(("stats", self.metrics.export(), stats))
             except Exception as err:  # the pipe is gone: the process is ending
                 log.debug("stats not sent: %s", err)
                 return

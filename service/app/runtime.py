@@ -33,7 +33,7 @@ from service.app.ingest import Ingest
 from service.app.instance import FleetMember
 from service.app.mapper import Engine, MapperPool
 from service.app.metrics import Labels, Metrics, labels
-from service.app.publishers import PublisherGuard
+from service.app.publishers import DUPLICATE_PUBLISHERS, PublisherGuard, PublisherStatus
 from service.app.sessions import SessionManager
 from service.app.settings import ServiceSettings, is_loopback_host
 from service.app.store import DataDir, MapStore
@@ -48,7 +48,6 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-DUPLICATE_PUBLISHERS = "mapping_duplicate_publishers_total"
 HOUSEKEEPING_PERIOD_S = 10.0
 
 
@@ -276,14 +275,16 @@ class MappingRuntime:
                     alive_wildcard(z.prefix, pattern), self._on_alive, history=True
                 )
             )
-            # One token per publisher of a robot: who else publishes on its key.
-            self._subscribers.append(
-                self.zenoh.liveliness().declare_subscriber(
-                    publisher_alive_wildcard(z.prefix, pattern),
-                    self._on_publisher_alive,
-                    history=True,
+            # One token per publisher of a robot: who else publishes on its key (followed
+            # where the scans arrive: here, or in the mapper processes that ingest).
+            if not self.ingest_in_mappers:
+                self._subscribers.append(
+                    self.zenoh.liveliness().declare_subscriber(
+                        publisher_alive_wildcard(z.prefix, pattern),
+                        self._on_publisher_alive,
+                        history=True,
+                    )
                 )
-            )
         log.info(
             "Zenoh session %s: %s subscribed to %s",
             self.zenoh.zid(),
@@ -459,6 +460,14 @@ class MappingRuntime:
             raise ConflictError(f"robot {robot_id!r} already has an active session on {other}")
 
     # -- observations ------------------------------------------------------------------------
+
+    def publisher_status(self) -> list[PublisherStatus]:
+        """Who publishes each robot's scans: this process's guard (liveliness tokens) and,
+        for robots whose scans mapper processes take in, theirs (which saw the scans)."""
+        merged = {p.robot_id: p for p in self.publishers.status()}
+        for remote in list(self.ingest.remote.values()):
+            merged.update((p.robot_id, p) for p in remote.publishers)
+        return [merged[r] for r in sorted(merged)]
 
     def alive_robots(self) -> set[str]:
         with self._alive_lock:

@@ -99,6 +99,8 @@ HELD_SCANS_MAX: Final = 4096
 IDLE_CLOSE_S: Final = 30.0
 # At shutdown, how long a session waits for its back end to take in the nodes handed to it.
 BACKEND_DRAIN_S: Final = 10.0
+# Tries to lease a recording to a mapper process that dies meanwhile (each rebuilds first).
+LEASE_ATTEMPTS: Final = 5
 # Checkpoints kept per session: the newest, and one before it in case the newest is damaged.
 CHECKPOINTS_KEPT: Final = 2
 
@@ -379,21 +381,25 @@ class MappingSession:
 
     def _lease_locked(self) -> None:
         self._checkpoint_asked = False
-        if not self.is_active or self._restoring or not self._pushes:
-            return
-        try:
-            if self._lost:
-                self._recover()
-            if self._checkpoint_due:
-                self._revoke()
-                self._write_checkpoint()
-            if not self._leased and self._pushes:
-                self._delegate()
-        except MapperLostError as err:  # its process died meanwhile: `_on_lost` comes
-            log.error("session %s: %s; rebuilt when it is started again", self.id, err)
-            self._lost = True
-        except (MapperError, OSError, ServiceError) as err:
-            log.error("session %s: the lease could not be given: %s", self.id, err)
+        if not self.is_active or self._restoring or not self._pushes or self._cancel.is_set():
+            return  # not mapping, or shutting down (`close` took the lease back for good)
+        for attempt in range(LEASE_ATTEMPTS):
+            try:
+                if self._lost:
+                    self._recover()
+                if self._checkpoint_due:
+                    self._revoke()
+                    self._write_checkpoint()
+                if not self._leased and self._pushes:
+                    self._delegate()
+                return
+            except MapperLostError as err:  # its process died (again): started at the next call
+                log.error("session %s: %s; rebuilding it", self.id, err)
+                self._lost = True
+                time.sleep(0.1 * (attempt + 1))  # a process just killed may not be reaped yet
+            except (MapperError, OSError, ServiceError) as err:
+                log.error("session %s: the lease could not be given: %s", self.id, err)
+                return
 
     def _on_lost(self) -> None:
         """Its mapper process died (task thread): rebuild from the recording, lease again."""
