@@ -200,10 +200,14 @@ class Ingest:
         admit: Callable[[str, str | None], bool] | None = None,
         forget: Callable[[str], None] | None = None,
         process: str = "main",
+        driven: bool = False,
     ) -> None:
         """`admit(robot_id, source_id)` may refuse a scan before it is queued (it counts and
         logs that itself): `PublisherGuard.admit`, against a second publisher on a key.
-        `forget(robot_id)` is told when a silent robot without a session is forgotten."""
+        `forget(robot_id)` is told when a silent robot without a session is forgotten.
+        `driven`: no worker threads; the caller serves the ready line (`serve_one`) and
+        forgets silent robots (`sweep_if_due`) itself, from its own thread."""
+        self._driven = driven
         self._prefix = prefix
         self._process = process
         self._admit = admit
@@ -271,7 +275,7 @@ class Ingest:
         # newcomer's payload is admitted once it validates (the guard keeps no state for junk).
         if known is not None and self._admit is not None and not self._admit(robot_id, source):
             return
-        if not self._workers:
+        if not self._workers and not self._driven:
             self._start_workers()
         dropped: str | None = None
         with self._lock:
@@ -342,23 +346,44 @@ class Ingest:
                     queue.busy = True
             if sweep:
                 self._forget_silent()
-            if queue is None:
-                continue
-            if isinstance(queue, _Newcomers):
-                self._serve_newcomers(queue)
-                continue
-            with self._lock:
-                if not queue.items:  # cannot happen (drop-oldest never empties); be safe
-                    queue.busy = queue.scheduled = False
-                    continue
-                payload = queue.items.popleft()
-            deferred = False
-            try:
-                deferred = self._handle(queue, payload)
-            except Exception:  # a worker must never die: its robots would go unmapped
-                log.exception("ingest worker failed on a scan of %s", queue.robot_id)
-            if not deferred:
-                self._release(queue, notify=False)
+            if queue is not None:
+                self._turn(queue)
+
+    def serve_one(self) -> bool:
+        """One turn of the ready line, without waiting (`driven`); False if none was ready."""
+        with self._lock:
+            queue = self._ready.popleft() if self._ready else None
+            if queue is not None:
+                queue.busy = True
+        if queue is None:
+            return False
+        self._turn(queue)
+        return True
+
+    def sweep_if_due(self) -> None:
+        """Forget silent robots when it is time (`driven`: the caller's timer)."""
+        now = time.monotonic_ns()
+        if now >= self._next_sweep_ns:
+            self._next_sweep_ns = now + int(min(self._idle_ns / 2, 5e9))
+            self._forget_silent()
+
+    def _turn(self, queue: _RobotQueue | _Newcomers) -> None:
+        """Serve one scan of `queue` (a batch of newcomers), which is marked busy."""
+        if isinstance(queue, _Newcomers):
+            self._serve_newcomers(queue)
+            return
+        with self._lock:
+            if not queue.items:  # cannot happen (drop-oldest never empties); be safe
+                queue.busy = queue.scheduled = False
+                return
+            payload = queue.items.popleft()
+        deferred = False
+        try:
+            deferred = self._handle(queue, payload)
+        except Exception:  # a worker must never die: its robots would go unmapped
+            log.exception("ingest worker failed on a scan of %s", queue.robot_id)
+        if not deferred:
+            self._release(queue, notify=False)
 
     def _release(self, queue: _RobotQueue | _Newcomers, *, notify: bool) -> None:
         """The robot's scan is done: its next one may go (one in flight per robot keeps its

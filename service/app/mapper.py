@@ -509,9 +509,13 @@ def _serve_loop(
             _, req, op, key, args = message
             try:
                 with work_lock:
-                    value = _call(
-                        op, key, args, engine=engine, mappers=mappers, leases=leases, host=host
-                    )
+                    try:
+                        value = _call(
+                            op, key, args, engine=engine, mappers=mappers, leases=leases, host=host
+                        )
+                    finally:
+                        if host is not None:
+                            host.flush()  # the scans mapped before this reply go first
                 out = ("reply", req, "ok", value)
             except Exception as err:  # reported to the caller, which logs it
                 out = ("reply", req, "error", f"{type(err).__name__}: {err}")
@@ -655,7 +659,8 @@ class MapperProcess:
                 break
             kind = message[0]
             if kind == "pushed":
-                self._pushed(message[1], _unflat(message[2]))
+                for key, flat in message[1]:
+                    self._pushed(key, _unflat(flat))
             elif kind == "want":
                 self._task(message[1], "on_want")
             elif kind == "stats":
