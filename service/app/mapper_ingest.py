@@ -1,16 +1,20 @@
 """The per-scan path inside a mapper process, when mapper processes ingest (`ingest_in_mappers`).
 
 Each mapper process opens its own Zenoh session (a client of the service's Zenoh endpoints: the
-service's session routes the robots' scans to it) and subscribes to the scan keys. It keeps the
-scans of the robots it owns, `owner(robot_id, K)` (a BLAKE2b digest of the id modulo K: stable
-across runs and processes, unlike Python's salted `hash`; CRC-32 put `bench-r00`..`r03` all in
-process 1 of 2), and drops the others in the callback. Its
-own `Ingest` (service/app/ingest.py: per-robot queues, validation, the time contract, newcomers
-and forgetting) then hands each valid scan to the robot's session here (`ProcessSession`), which
-records and maps it under the session's lease (`_Lease.handle`) and publishes the pose on Zenoh
-from this process. The service's process gets one small message per pose (`pushed`, for its
-trajectory, GET pose and the browser streams) and, every `STATS_PERIOD_S`, this process's
-counters (`stats`, for /metrics and /health).
+service's session routes the robots' scans to it) and subscribes to the scan keys, into a Zenoh
+channel that one thread drains between two scans (`_pump`). Exactly one process takes each
+robot's scans: a robot with an active session is assigned by the service to the least busy
+process when the session starts (every process is told: `assign`); any other robot goes by
+`owner(robot_id, K)`, a BLAKE2b digest of the id modulo K (stable across runs and processes,
+unlike Python's salted `hash`). A process drops the other robots' scans as it takes them.
+
+Its own `Ingest` (service/app/ingest.py: per-robot queues, validation, the time contract,
+newcomers and forgetting, the second-publisher guard) hands each valid scan to the robot's
+session here (`ProcessSession`), which records and maps it under the session's lease
+(`_Lease.handle`); the pose is published on Zenoh from this process. The service's process gets
+a small entry per pose (`pushed`, batched; for its trajectory, GET pose and the browser
+streams) and, every `STATS_PERIOD_S`, this process's counters (`stats`, for /metrics and
+/health).
 
 Which robots have an active session, and which session, the service says (`activate`,
 `deactivate`); a scan of an active session without a lease here (its session is restoring,
