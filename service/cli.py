@@ -187,6 +187,13 @@ def build_parser() -> argparse.ArgumentParser:
         "(or env MAPPING_MAPPER_PROCESSES; default: 0, in the service's process)",
     )
     p_serve.add_argument(
+        "--ingest-in-mappers",
+        action="store_true",
+        help="with --mapper-processes K > 0: each mapper process subscribes to its share of "
+        "the robots' scans and records, maps and publishes them itself; the service's process "
+        "keeps HTTP and control (or env MAPPING_INGEST_IN_MAPPERS=1; default: off)",
+    )
+    p_serve.add_argument(
         "--no-loop-closure",
         action="store_true",
         help="run the front end alone: no pose graph, no loop closure, poses final once "

@@ -222,8 +222,13 @@ class PoseFanout:
             except Exception as err:  # ZError when the session is closing
                 self._metrics.inc(POSE_PUBLISH_ERRORS)
                 log.debug("pose publication failed: %s", err)
+        self.to_streams(pose)
+
+    def to_streams(self, pose: Pose) -> None:
+        """Send `pose` to the browser streams only (a mapper process that ingests published
+        it on Zenoh itself)."""
         loop = self._loop
-        if loop is not None and self._stream_count > 0:
+        if loop is not None and self._stream_count > 0 and not self._closed:
             with self._pending_lock:
                 first = not self._pending
                 self._pending.append(pose)

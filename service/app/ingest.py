@@ -37,7 +37,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol
 
 import zenoh
 
@@ -46,8 +46,8 @@ from clients.wire import DecodeError, Pose, Scan, decode_scan, is_valid_robot_id
 from service.app.errors import ServiceError
 from service.app.limits import ROS_TIME_MAX_NS, in_ros_time
 from service.app.metrics import SCAN_SECONDS_BUCKETS, Labels, Metrics, labels
-from service.app.publishers import source_id_of
-from service.app.sessions import DEFERRED, Ingested, SessionManager
+from service.app.publishers import PublisherStatus, source_id_of
+from service.app.sessions import DEFERRED, Ingested
 from service.app.settings import IngestSettings
 
 log = logging.getLogger(__name__)
@@ -71,6 +71,7 @@ ROBOTS_TRACKED = "mapping_ingest_robots"
 ROBOTS_LIMIT = "mapping_ingest_max_robots"
 ROBOTS_FORGOTTEN = "mapping_ingest_robots_forgotten_total"
 NEWCOMERS_QUEUED = "mapping_ingest_newcomer_queue_depth"
+PAYLOADS = "mapping_ingest_payloads_total"
 STAMP_ANOMALIES = "mapping_scan_stamp_anomalies_total"
 # Series of a robot that go when the robot is forgotten.
 _PER_ROBOT = (SCANS_UNMAPPED, SCANS_DROPPED, STAMP_ANOMALIES)
@@ -96,6 +97,11 @@ def declare_metrics(
         "Scans of a robot with a session whose host stamp was out of ROS time, not after the "
         "previous one (refused: stamp_out_of_range, stamp_backwards, stamp_duplicate) or beyond "
         "the gap limit after it (mapped: stamp_gap).",
+    )
+    metrics.counter(
+        PAYLOADS,
+        "Scan payloads taken in, by process: main (the service's) or mapper-<i> (mapper "
+        "processes that ingest their robots' scans themselves).",
     )
     metrics.counter(ROBOTS_FORGOTTEN, "Robots without a session forgotten after falling silent.")
     metrics.gauge(ROBOTS_TRACKED, "Robots with ingest state (a queue).", tracked)
@@ -147,6 +153,25 @@ class RobotStatus:
 
 
 @dataclass(frozen=True, slots=True)
+class IngestStats:
+    """What a mapper process's ingest reports to the service now and then (with
+    `ingest_in_mappers`): small, one entry per robot it tracks (at most `max_robots`)."""
+
+    robots: tuple[RobotStatus, ...]
+    newcomers_queued: int
+    robots_forgotten: int
+    store_errors: int
+    publishers: tuple[PublisherStatus, ...] = ()  # the process's guard, for its robots
+
+
+class SessionLookup(Protocol):
+    """Where ingest finds a robot's active session (`SessionManager`, or a mapper process's
+    table of the sessions it holds leases for)."""
+
+    def active_for(self, robot_id: str) -> Any: ...
+
+
+@dataclass(frozen=True, slots=True)
 class IngestSummary:
     """Counts for /health: one entry per reason, never one per robot id."""
 
@@ -167,18 +192,24 @@ class Ingest:
     def __init__(
         self,
         prefix: str,
-        sessions: SessionManager,
+        sessions: SessionLookup,
         publish: Callable[[Pose, bytes | None], None],
         metrics: Metrics,
         settings: IngestSettings,
         *,
         admit: Callable[[str, str | None], bool] | None = None,
         forget: Callable[[str], None] | None = None,
+        process: str = "main",
+        driven: bool = False,
     ) -> None:
         """`admit(robot_id, source_id)` may refuse a scan before it is queued (it counts and
         logs that itself): `PublisherGuard.admit`, against a second publisher on a key.
-        `forget(robot_id)` is told when a silent robot without a session is forgotten."""
+        `forget(robot_id)` is told when a silent robot without a session is forgotten.
+        `driven`: no worker threads; the caller serves the ready line (`serve_one`) and
+        forgets silent robots (`sweep_if_due`) itself, from its own thread."""
+        self._driven = driven
         self._prefix = prefix
+        self._process = process
         self._admit = admit
         self._forget = forget
         self._sessions = sessions
@@ -201,8 +232,11 @@ class Ingest:
         self._workers: list[threading.Thread] = []
         self._closing = False
         self._next_sweep_ns = 0
-        self.store_errors = 0
+        self._store_errors = 0
         self.robots_forgotten = 0
+        # Mapper processes that ingest themselves report here (key: the process), so that
+        # /health and /metrics count their robots as ours.
+        self.remote: dict[str, IngestStats] = {}
         # (reason, robot) -> (monotonic ns of its last line, occurrences only counted since)
         self._logged: dict[tuple[str, str], tuple[int, int]] = {}
         self._logged_lock = threading.Lock()
@@ -231,6 +265,7 @@ class Ingest:
     def submit(self, key: str, payload: bytes, source: str | None = None) -> None:
         """Queue one payload received on `key` from publisher `source` (its Zenoh id, if
         known); non-blocking, drops the oldest when full."""
+        self._metrics.inc(PAYLOADS, process=self._process)
         robot_id = robot_id_from_key(key, self._prefix)
         if robot_id is None or not is_valid_robot_id(robot_id):
             self._reject("bad_key", "?", key[:120], tracked=False)
@@ -240,7 +275,7 @@ class Ingest:
         # newcomer's payload is admitted once it validates (the guard keeps no state for junk).
         if known is not None and self._admit is not None and not self._admit(robot_id, source):
             return
-        if not self._workers:
+        if not self._workers and not self._driven:
             self._start_workers()
         dropped: str | None = None
         with self._lock:
@@ -311,23 +346,44 @@ class Ingest:
                     queue.busy = True
             if sweep:
                 self._forget_silent()
-            if queue is None:
-                continue
-            if isinstance(queue, _Newcomers):
-                self._serve_newcomers(queue)
-                continue
-            with self._lock:
-                if not queue.items:  # cannot happen (drop-oldest never empties); be safe
-                    queue.busy = queue.scheduled = False
-                    continue
-                payload = queue.items.popleft()
-            deferred = False
-            try:
-                deferred = self._handle(queue, payload)
-            except Exception:  # a worker must never die: its robots would go unmapped
-                log.exception("ingest worker failed on a scan of %s", queue.robot_id)
-            if not deferred:
-                self._release(queue, notify=False)
+            if queue is not None:
+                self._turn(queue)
+
+    def serve_one(self) -> bool:
+        """One turn of the ready line, without waiting (`driven`); False if none was ready."""
+        with self._lock:
+            queue = self._ready.popleft() if self._ready else None
+            if queue is not None:
+                queue.busy = True
+        if queue is None:
+            return False
+        self._turn(queue)
+        return True
+
+    def sweep_if_due(self) -> None:
+        """Forget silent robots when it is time (`driven`: the caller's timer)."""
+        now = time.monotonic_ns()
+        if now >= self._next_sweep_ns:
+            self._next_sweep_ns = now + int(min(self._idle_ns / 2, 5e9))
+            self._forget_silent()
+
+    def _turn(self, queue: _RobotQueue | _Newcomers) -> None:
+        """Serve one scan of `queue` (a batch of newcomers), which is marked busy."""
+        if isinstance(queue, _Newcomers):
+            self._serve_newcomers(queue)
+            return
+        with self._lock:
+            if not queue.items:  # cannot happen (drop-oldest never empties); be safe
+                queue.busy = queue.scheduled = False
+                return
+            payload = queue.items.popleft()
+        deferred = False
+        try:
+            deferred = self._handle(queue, payload)
+        except Exception:  # a worker must never die: its robots would go unmapped
+            log.exception("ingest worker failed on a scan of %s", queue.robot_id)
+        if not deferred:
+            self._release(queue, notify=False)
 
     def _release(self, queue: _RobotQueue | _Newcomers, *, notify: bool) -> None:
         """The robot's scan is done: its next one may go (one in flight per robot keeps its
@@ -587,8 +643,21 @@ class Ingest:
                 log.exception("a scan observer failed on %s", robot_id)
         self._metrics.observe(SCAN_SECONDS, time.perf_counter() - t0)
 
+    @property
+    def store_errors(self) -> int:
+        return self._store_errors + sum(r.store_errors for r in list(self.remote.values()))
+
+    def stats(self) -> IngestStats:
+        """This ingest's own counts, for the service (in a mapper process)."""
+        return IngestStats(
+            tuple(self._robots()),
+            len(self._newcomers.items),
+            self.robots_forgotten,
+            self._store_errors,
+        )
+
     def _store_error(self, robot_id: str, detail: str) -> None:
-        self.store_errors += 1
+        self._store_errors += 1
         self._metrics.inc(SCANS_DROPPED, robot=robot_id, reason="store_error")
         self._log_once("store_error", robot_id, f"could not record the scan: {detail}")
 
@@ -625,7 +694,7 @@ class Ingest:
                 who, message, reason, _LOG_AGAIN_S)  # fmt: skip
 
     def _depths(self) -> list[tuple[Labels, float]]:
-        return [(labels(robot=s.robot_id), float(s.queue_depth)) for s in self.robots()]
+        return [(labels(robot=s.robot_id), float(s.queue_depth)) for s in self._robots()]
 
     def _tracked(self) -> list[tuple[Labels, float]]:
         return [((), float(len(self._queues)))]
@@ -634,6 +703,13 @@ class Ingest:
         return [((), float(len(self._newcomers.items)))]
 
     def robots(self) -> list[RobotStatus]:
+        """Every robot tracked, here and in the mapper processes that ingest."""
+        out = self._robots()
+        for remote in list(self.remote.values()):
+            out.extend(remote.robots)
+        return sorted(out, key=lambda r: r.robot_id)
+
+    def _robots(self) -> list[RobotStatus]:
         with self._lock:
             queues = list(self._queues.values())
         return [
@@ -649,11 +725,12 @@ class Ingest:
         def by(name: str, label: str) -> dict[str, int]:
             return {k: int(v) for k, v in sorted(m.by_label(name, label).items())}
 
+        remote = list(self.remote.values())
         return IngestSummary(
-            robots_tracked=len(self._queues),
+            robots_tracked=len(self._queues) + sum(len(r.robots) for r in remote),
             max_robots=self._settings.max_robots,
-            robots_forgotten=self.robots_forgotten,
-            newcomers_queued=len(self._newcomers.items),
+            robots_forgotten=self.robots_forgotten + sum(r.robots_forgotten for r in remote),
+            newcomers_queued=len(self._newcomers.items) + sum(r.newcomers_queued for r in remote),
             scans_accepted=int(m.total(SCANS_ACCEPTED)),
             scans_unmapped=int(m.total(SCANS_UNMAPPED)),
             scans_rejected=by(SCANS_REJECTED, "reason"),

@@ -60,6 +60,9 @@ from service.core.types import LaserScan, Pose2D, PoseEstimate
 
 if TYPE_CHECKING:
     from service.app.backend import GraphSnapshot, LiveBackend
+    from service.app.ingest import IngestStats
+    from service.app.mapper_ingest import IngestConfig, ProcessIngest
+    from service.app.metrics import Snapshot
 
 log = logging.getLogger(__name__)
 
@@ -157,6 +160,7 @@ class LeaseSpec:
     end_offset: int | None  # where its intact records end (None: read the file to find out)
     next_seq: int  # the sequence of the next pose
     fsync_each: bool
+    last_stamp_ns: int | None = None  # the last pose's stamp (the time contract's start)
 
 
 class Done(NamedTuple):
@@ -174,10 +178,13 @@ class Done(NamedTuple):
 LOST: Final = Done(False, None, None, -1, 0, "lost: the mapper process died", 0.0)
 
 
-def _flat(done: Done) -> tuple[Any, ...]:
+def flat_done(done: Done) -> tuple[Any, ...]:
     """`done` as plain tuples for the pipe (a NamedTuple pickles its class by name: slower)."""
     mapped = done.mapped
     return (done.recorded, None if mapped is None else tuple(mapped), *done[2:])
+
+
+_flat = flat_done
 
 
 def _unflat(flat: tuple[Any, ...]) -> Done:
@@ -374,11 +381,13 @@ class _Lease:
             spec.path, fsync_every=1 if spec.fsync_each else 0, report=report
         )
 
-    def handle(self, payload: bytes) -> Done:
+    def handle(self, payload: bytes, scan: Scan | None = None) -> Done:
         """The per-scan path: record the scan, map it, record its pose (in this order: a scan
-        is durable before it counts, its pose before anyone is told)."""
+        is durable before it counts, its pose before anyone is told). `scan` is the payload
+        decoded, when the caller validated it here."""
         t0 = time.perf_counter()
-        scan = decode_scan(payload, max_payload_bytes=len(payload))  # validated by the service
+        if scan is None:  # validated by the service
+            scan = decode_scan(payload, max_payload_bytes=len(payload))
         seq = self.next_seq
         try:
             self.writer.append(payload)
@@ -418,13 +427,64 @@ def _die_with_parent() -> None:
         os._exit(1)
 
 
-def _serve(conn: multiprocessing.connection.Connection, engine: Engine) -> None:
+def _serve(
+    conn: multiprocessing.connection.Connection,
+    engine: Engine,
+    ingest_cfg: IngestConfig | None = None,
+    log_level: int = logging.WARNING,
+) -> None:
     """A mapper process: answer calls and map forwarded scans, in the order they come, until
-    the pipe closes."""
+    the pipe closes. With `ingest_cfg` it also ingests its share of the robots' scans from
+    Zenoh itself (service/app/mapper_ingest.py)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops us by closing the pipe
     _die_with_parent()
+    # A spawned process starts without the service's logging: the same lines, with its name.
+    logging.basicConfig(
+        level=log_level,
+        format=f"%(asctime)s %(levelname)-7s [mapper-{os.getpid()}] %(name)s: %(message)s",
+        stream=sys.stderr,
+    )
     mappers: dict[str, LocalMapper] = {}
     leases: dict[str, _Lease] = {}
+    # The pipe loop and the ingest worker both use mappers and leases: one at a time.
+    work_lock = threading.Lock()
+    send_lock = threading.Lock()
+
+    def send(message: tuple[Any, ...]) -> None:
+        with send_lock:
+            conn.send(message)
+
+    host = None
+    if ingest_cfg is not None:
+        from service.app.mapper_ingest import ProcessIngest  # noqa: PLC0415  # imports sessions
+
+        host = ProcessIngest(ingest_cfg, work_lock, leases, send)
+        host.start()
+    try:
+        _serve_loop(
+            conn,
+            engine,
+            mappers=mappers,
+            leases=leases,
+            work_lock=work_lock,
+            send=send,
+            host=host,
+        )
+    finally:
+        if host is not None:
+            host.close()
+
+
+def _serve_loop(
+    conn: multiprocessing.connection.Connection,
+    engine: Engine,
+    *,
+    mappers: dict[str, LocalMapper],
+    leases: dict[str, _Lease],
+    work_lock: threading.Lock,
+    send: Callable[[tuple[Any, ...]], None],
+    host: ProcessIngest | None,
+) -> None:
     while True:
         try:
             message = conn.recv()
@@ -435,47 +495,84 @@ def _serve(conn: multiprocessing.connection.Connection, engine: Engine) -> None:
             return
         if message[0] == "scan":
             _, key, payload = message
-            lease = leases.get(key)
-            if lease is None:  # cannot happen: the service forwards only under a lease
-                out = ("done", key, _flat(Done(False, None, None, -1, 0, "lost: no lease", 0.0)))
-            else:
-                try:
-                    out = ("done", key, _flat(lease.handle(payload)))
-                except Exception as err:
-                    out = ("done", key, _flat(Done(False, None, None, -1, 0, f"store: {err}", 0.0)))
+            with work_lock:
+                lease = leases.get(key)
+                if lease is None:  # cannot happen: the service forwards only under a lease
+                    done = Done(False, None, None, -1, 0, "lost: no lease", 0.0)
+                else:
+                    try:
+                        done = lease.handle(payload)
+                    except Exception as err:
+                        done = Done(False, None, None, -1, 0, f"store: {err}", 0.0)
+            out = ("done", key, _flat(done))
         else:
             _, req, op, key, args = message
             try:
-                value: Any = None
-                if op == "create":
-                    mappers[key] = LocalMapper(engine, *args)
-                elif op == "drop":
-                    mappers.pop(key, None)
-                    lease = leases.pop(key, None)
-                    if lease is not None:
-                        lease.close()
-                elif key not in mappers:
-                    raise KeyError(f"no mapper {key!r} in this process")
-                elif op == "delegate":
-                    old = leases.pop(key, None)
-                    if old is not None:
-                        old.close()
-                    leases[key] = _Lease(args[0], mappers[key])
-                elif op == "revoke":
-                    lease = leases.pop(key, None)
-                    value = lease.close() if lease is not None else None
-                else:
-                    value = getattr(mappers[key], op)(*args)
+                with work_lock:
+                    try:
+                        value = _call(
+                            op, key, args, engine=engine, mappers=mappers, leases=leases, host=host
+                        )
+                    finally:
+                        if host is not None:
+                            host.flush()  # the scans mapped before this reply go first
                 out = ("reply", req, "ok", value)
             except Exception as err:  # reported to the caller, which logs it
                 out = ("reply", req, "error", f"{type(err).__name__}: {err}")
         try:
-            conn.send(out)
+            send(out)
         except (BrokenPipeError, OSError):
             return
 
 
+def _call(
+    op: str,
+    key: str,
+    args: tuple[Any, ...],
+    *,
+    engine: Engine,
+    mappers: dict[str, LocalMapper],
+    leases: dict[str, _Lease],
+    host: ProcessIngest | None,
+) -> Any:
+    """One call of the service on mapper `key` (work lock held)."""
+    value: Any = None
+    if op == "assign":
+        if host is not None:
+            host.assign(key, args[0])
+    elif op == "activate":
+        if host is not None:
+            host.activate(args[0], key)
+    elif op == "deactivate":
+        if host is not None:
+            host.deactivate(args[0], key)
+    elif op == "create":
+        mappers[key] = LocalMapper(engine, *args)
+    elif op == "drop":
+        mappers.pop(key, None)
+        lease = leases.pop(key, None)
+        if lease is not None:
+            lease.close()
+    elif key not in mappers:
+        raise KeyError(f"no mapper {key!r} in this process")
+    elif op == "delegate":
+        old = leases.pop(key, None)
+        if old is not None:
+            old.close()
+        leases[key] = _Lease(args[0], mappers[key])
+        if host is not None:
+            host.delegated(args[0])
+    elif op == "revoke":
+        lease = leases.pop(key, None)
+        value = lease.close() if lease is not None else None
+    else:
+        value = getattr(mappers[key], op)(*args)
+    return value
+
+
 OnDone = Callable[[Done], None]
+# (process label, generation, its metrics, its ingest's counts): mapper processes that ingest.
+OnStats = Callable[[str, int, "Snapshot", "IngestStats"], None]
 
 
 class MapperProcess:
@@ -483,10 +580,26 @@ class MapperProcess:
     started process receives every answer, in the order the process sent them."""
 
     def __init__(
-        self, index: int, engine: Engine, spawner: ThreadPoolExecutor | None = None
+        self,
+        index: int,
+        engine: Engine,
+        spawner: ThreadPoolExecutor | None = None,
+        *,
+        ingest: IngestConfig | None = None,
+        tasks: ThreadPoolExecutor | None = None,
+        activations: Callable[[int], list[tuple[str, str, str]]] | None = None,
+        on_stats: OnStats | None = None,
     ) -> None:
         self.index = index
         self._engine = engine
+        # With `ingest`, the process subscribes to its robots' scans itself; the messages it
+        # sends unasked (`pushed`, `want`, `stats`) go to the session's mapper here (`remotes`)
+        # and the runtime (`on_stats`); work that takes a session's lock runs on `tasks`.
+        self.ingest = ingest
+        self._tasks = tasks
+        self._activations = activations
+        self._on_stats = on_stats
+        self.remotes: dict[str, RemoteMapper] = {}
         # Processes are started from one long-lived thread: the parent-death signal fires when
         # the *thread* that started a process ends, and ingest threads come and go.
         self._spawner = spawner
@@ -510,7 +623,10 @@ class MapperProcess:
         ctx = multiprocessing.get_context("spawn")  # no fork of a process with Zenoh threads
         parent, child = ctx.Pipe()
         process = ctx.Process(
-            target=_serve, args=(child, self._engine), name=f"mapper-{self.index}", daemon=True
+            target=_serve,
+            args=(child, self._engine, self.ingest, logging.getLogger().getEffectiveLevel()),
+            name=f"mapper-{self.index}",
+            daemon=True,
         )
         if self._spawner is not None:
             self._spawner.submit(process.start).result()
@@ -526,6 +642,12 @@ class MapperProcess:
             daemon=True,
         )
         reader.start()
+        if self._activations is not None:
+            # A new process knows no session: tell it which of its robots have one (their
+            # scans are held until the lease comes). Replies are not waited for.
+            with self._send_lock:
+                for op, key, arg in self._activations(self.index):
+                    parent.send(("call", -1, op, key, (arg,)))
         log.info("mapper process %d started (pid %s)", self.index, process.pid)
 
     def _read(self, conn: multiprocessing.connection.Connection, generation: int) -> None:
@@ -535,7 +657,17 @@ class MapperProcess:
                 message = conn.recv()
             except (EOFError, OSError):
                 break
-            if message[0] == "done":
+            kind = message[0]
+            if kind == "pushed":
+                for key, flat in message[1]:
+                    self._pushed(key, _unflat(flat))
+            elif kind == "want":
+                self._task(message[1], "on_want")
+            elif kind == "stats":
+                if self._on_stats is not None:
+                    with contextlib.suppress(Exception):
+                        self._on_stats(f"mapper-{self.index}", generation, *message[1:])
+            elif kind == "done":
                 _, key, flat = message
                 done = _unflat(flat)
                 with self._lock:
@@ -557,12 +689,34 @@ class MapperProcess:
                         future.set_exception(MapperError(str(value)))
         self._lost(generation)
 
+    def _pushed(self, key: str, done: Done) -> None:
+        """A scan the process ingested itself, recorded and mapped under `key`'s lease."""
+        remote = self.remotes.get(key)
+        handler = remote.on_pushed if remote is not None else None
+        if handler is not None:
+            try:
+                handler(done)
+            except Exception:  # the reader must go on: other sessions wait on it
+                log.exception("applying a mapped scan of %s failed", key)
+
+    def _task(self, key: str | None, name: str) -> None:
+        """Run a session's handler `name` on the task thread (it takes the session's lock,
+        which may wait for a reply this reader delivers)."""
+        remotes = list(self.remotes.values()) if key is None else [self.remotes.get(key)]
+        for remote in remotes:
+            handler = getattr(remote, name, None) if remote is not None else None
+            if handler is not None and self._tasks is not None:
+                with contextlib.suppress(RuntimeError):  # shut down
+                    self._tasks.submit(handler)
+
     def _lost(self, generation: int) -> None:
         with self._lock:
             if generation != self.generation:
                 return
             calls, self._calls = self._calls, {}
             inflight, self._inflight = self._inflight, {}
+        if self.ingest is not None and not self._closed:
+            self._task(None, "on_lost")  # nothing else would rebuild its sessions
         for future in calls.values():
             future.set_exception(MapperLostError(f"mapper process {self.index} died"))
         for waiting in inflight.values():
@@ -596,6 +750,17 @@ class MapperProcess:
                 self._calls.pop(req, None)
             raise MapperLostError(f"mapper process {self.index} died: {err}") from err
         return future.result()
+
+    def notify(self, op: str, key: str, *args: Any) -> None:
+        """Send a call nobody waits for (the process applies it in order); nothing when the
+        process is not running: a start tells it the activations anyway."""
+        with self._lock:
+            alive = self._process is not None and self._process.is_alive()
+            conn = self._conn if alive else None
+        if conn is None:
+            return
+        with contextlib.suppress(OSError, ValueError), self._send_lock:
+            conn.send(("call", -1, op, key, args))
 
     def forward(self, generation: int, key: str, payload: bytes, on_done: OnDone) -> None:
         """Send a scan to mapper `key`'s lease; `on_done(Done)` runs on the reader thread
@@ -680,8 +845,28 @@ class RemoteMapper:
     ) -> None:
         self._proc = proc
         self._key = key
+        # With a process that ingests (its session sets these): a scan it recorded and mapped
+        # itself (on the reader thread), a scan held for want of the lease, the process died
+        # (both on the task thread).
+        self.on_pushed: OnDone | None = None
+        self.on_want: Callable[[], None] | None = None
+        self.on_lost: Callable[[], None] | None = None
         proc.call(0, "create", key, use_odometry, resolution_m)
         self._generation = proc.generation
+        proc.remotes[key] = self
+
+    def later(self, fn: Callable[[], None]) -> None:
+        """Run `fn` on the pool's task thread (it may take a session's lock)."""
+        tasks = self._proc._tasks
+        if tasks is not None:
+            with contextlib.suppress(RuntimeError):  # shut down
+                tasks.submit(fn)
+
+    @property
+    def pushes(self) -> bool:
+        """Its process ingests the robot's scans itself: the session leases its recording
+        there whenever it is active, and is told of each scan (`on_pushed`)."""
+        return self._proc.ingest is not None
 
     def _call(self, op: str, *args: Any) -> Any:
         return self._proc.call(self._generation, op, self._key, *args)
@@ -727,18 +912,99 @@ class RemoteMapper:
         self._call("restore", state, pack_path)
 
     def close(self) -> None:
+        if self._proc.remotes.get(self._key) is self:
+            del self._proc.remotes[self._key]
         with contextlib.suppress(MapperError):  # a process gone or going took the state along
             self._proc.call(self._generation, "drop", self._key)
         self._proc.mappers -= 1
 
 
 class MapperPool:
-    """K mapper processes; each new session goes to the process with the fewest sessions."""
+    """K mapper processes; each new session goes to the process with the fewest sessions, or,
+    when the processes ingest (`ingest`), to the process that owns its robot's scans."""
 
-    def __init__(self, processes: int, engine: Engine) -> None:
+    def __init__(
+        self,
+        processes: int,
+        engine: Engine,
+        ingest: Callable[[int], IngestConfig] | None = None,
+        on_stats: OnStats | None = None,
+    ) -> None:
         self._spawner = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-spawn")
-        self._procs = [MapperProcess(i, engine, self._spawner) for i in range(processes)]
+        # Leases asked for, rebuilds after a process died: one at a time, off the readers.
+        self._tasks = ThreadPoolExecutor(max_workers=1, thread_name_prefix="mapper-tasks")
         self._lock = threading.Lock()
+        self._active: dict[str, str] = {}  # robot id -> its active session's id (ingest)
+        # Robot id -> the process that takes its scans while it has an active session: the
+        # least busy when the session starts (a hash alone put 8 of 10 robots in one of two
+        # processes); robots without one go by `owner` (a stable hash). Every process knows
+        # every assignment, so that exactly one takes each scan.
+        self._assigned: dict[str, int] = {}
+        self._robot_of: dict[str, str] = {}  # session id -> robot id (placement)
+        self.ingests = ingest is not None
+        self._procs = [
+            MapperProcess(
+                i,
+                engine,
+                self._spawner,
+                ingest=ingest(i) if ingest is not None else None,
+                tasks=self._tasks,
+                activations=self._activations if ingest is not None else None,
+                on_stats=on_stats,
+            )
+            for i in range(processes)
+        ]
+
+    def _owner(self, robot_id: str) -> MapperProcess:
+        from service.app.mapper_ingest import owner  # noqa: PLC0415  # imports sessions
+
+        index = self._assigned.get(robot_id)
+        return self._procs[owner(robot_id, len(self._procs)) if index is None else index]
+
+    def _activations(self, index: int) -> list[tuple[str, str, str]]:
+        """What a (re)started process must be told: every assignment, its active sessions."""
+        with self._lock:
+            assigned = list(self._assigned.items())
+            active = [(r, s) for r, s in self._active.items() if self._owner(r).index == index]
+        return [("assign", r, str(i)) for r, i in assigned] + [
+            ("activate", s, r) for r, s in active
+        ]
+
+    def activate(self, robot_id: str, session_id: str) -> None:
+        """`robot_id`'s scans belong to `session_id` (its owning process holds them until the
+        session leases its recording there)."""
+        if not self.ingests:
+            return
+        with self._lock:
+            self._active[robot_id] = session_id
+            self._robot_of[session_id] = robot_id
+            index = self._assigned.get(robot_id)
+            if index is None:
+                load = [0] * len(self._procs)
+                for i in self._assigned.values():
+                    load[i] += 1
+                index = self._assigned[robot_id] = min(range(len(load)), key=load.__getitem__)
+        for proc in self._procs:
+            proc.notify("assign", robot_id, str(index))
+        self._procs[index].notify("activate", session_id, robot_id)
+
+    def deactivate(self, robot_id: str, session_id: str) -> None:
+        if not self.ingests:
+            return
+        with self._lock:
+            proc = self._owner(robot_id)
+            if self._active.get(robot_id) != session_id:
+                return
+            del self._active[robot_id]
+            self._assigned.pop(robot_id, None)
+        proc.notify("deactivate", session_id, robot_id)
+        for other in self._procs:
+            other.notify("assign", robot_id, "")
+
+    def place(self, session_id: str, robot_id: str) -> None:
+        """Where `session_id`'s mapper goes when it is made (a stopped session's too)."""
+        with self._lock:
+            self._robot_of[session_id] = robot_id
 
     def start(self) -> None:
         for proc in self._procs:
@@ -746,7 +1012,11 @@ class MapperPool:
 
     def new_mapper(self, session_id: str, use_odometry: bool, resolution_m: float) -> Mapper:
         with self._lock:
-            proc = min(self._procs, key=lambda p: p.mappers)
+            robot_id = self._robot_of.get(session_id) if self.ingests else None
+            if robot_id is not None:
+                proc = self._owner(robot_id)
+            else:
+                proc = min(self._procs, key=lambda p: p.mappers)
             proc.mappers += 1
         try:
             return RemoteMapper(proc, session_id, use_odometry, resolution_m)
@@ -765,4 +1035,5 @@ class MapperPool:
     def close(self) -> None:
         for proc in self._procs:
             proc.close()
+        self._tasks.shutdown(wait=False, cancel_futures=True)
         self._spawner.shutdown(wait=False)

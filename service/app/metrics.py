@@ -56,12 +56,80 @@ def labels(**kv: str) -> Labels:
     return tuple(sorted(kv.items()))
 
 
+# Another process's series: name -> (values, histograms as (counts, total, count)).
+Snapshot = dict[str, tuple[dict[Labels, float], dict[Labels, tuple[list[int], float, int]]]]
+
+
 class Metrics:
-    """Counters and histograms updated from any thread; `render()` for `GET /metrics`."""
+    """Counters and histograms updated from any thread; `render()` for `GET /metrics`.
+
+    Series of other processes (mapper processes that ingest scans themselves) are added to
+    ours by name: each sends its `export()` now and then and `set_external` keeps the latest;
+    a process that restarted starts from zero, so its previous counts are kept as a base."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._families: dict[str, _Family] = {}
+        self._external: dict[str, tuple[int, Snapshot]] = {}  # source -> (generation, snap)
+        self._retired: Snapshot = {}  # counters and histograms of sources that restarted
+
+    def export(self) -> Snapshot:
+        """Counters, histograms and collected gauges, for another process's `set_external`."""
+        with self._lock:
+            families = list(self._families.values())
+            out: Snapshot = {}
+            for f in families:
+                if f.kind == "gauge" and f.collector is None:
+                    continue  # set by hand (limits): each process would add its own
+                hists = {k: (list(h.counts), h.total, h.count) for k, h in f.histograms.items()}
+                out[f.name] = (dict(f.values) if f.kind != "gauge" else {}, hists)
+        for f in families:
+            if f.collector is not None:
+                out[f.name] = (dict(f.collector()), {})
+        return out
+
+    def set_external(self, source: str, generation: int, snap: Snapshot) -> None:
+        """The latest series of `source`; a new `generation` keeps the old counts as a base."""
+        with self._lock:
+            old = self._external.get(source)
+            if old is not None and old[0] != generation:
+                for name, (values, hists) in old[1].items():
+                    fam = self._families.get(name)
+                    if fam is None or fam.kind == "gauge":
+                        continue
+                    base_values, base_hists = self._retired.setdefault(name, ({}, {}))
+                    for k, v in values.items():
+                        base_values[k] = base_values.get(k, 0.0) + v
+                    for k, (counts, total, count) in hists.items():
+                        b = base_hists.get(k)
+                        base_hists[k] = (
+                            (counts, total, count)
+                            if b is None
+                            else ([x + y for x, y in zip(b[0], counts, strict=True)],
+                                  b[1] + total, b[2] + count)
+                        )  # fmt: skip
+            self._external[source] = (generation, snap)
+
+    def _merged(self, fam: _Family) -> tuple[dict[Labels, float], dict[Labels, _Histogram]]:
+        """Our series of `fam` plus every other process's (lock held)."""
+        values = dict(fam.values)
+        hists = _copy_hists(fam)
+        sources = [self._retired, *(snap for _, snap in self._external.values())]
+        for snap in sources:
+            entry = snap.get(fam.name)
+            if entry is None:
+                continue
+            for k, v in entry[0].items():
+                values[k] = values.get(k, 0.0) + v
+            for k, (counts, total, count) in entry[1].items():
+                h = hists.get(k)
+                if h is None:
+                    hists[k] = _Histogram(fam.buckets, list(counts), total, count)
+                else:
+                    h.counts = [x + y for x, y in zip(h.counts, counts, strict=True)]
+                    h.total += total
+                    h.count += count
+        return values, hists
 
     def counter(self, name: str, help_text: str) -> None:
         self._declare(_Family(name, "counter", help_text))
@@ -111,19 +179,22 @@ class Metrics:
     def value(self, name: str, **label_values: str) -> float:
         """Current value of one counter/gauge series (0 when never touched)."""
         with self._lock:
-            return self._families[name].values.get(labels(**label_values), 0.0)
+            values, _ = self._merged(self._families[name])
+            return values.get(labels(**label_values), 0.0)
 
     def total(self, name: str) -> float:
         """Sum over every label set of a counter."""
         with self._lock:
-            return sum(self._families[name].values.values())
+            values, _ = self._merged(self._families[name])
+            return sum(values.values())
 
     def by_label(self, name: str, label: str) -> dict[str, float]:
         """A counter summed per value of one label (`reason` -> count): a summary whose size
         is the label's values, not the series'."""
         out: dict[str, float] = {}
         with self._lock:
-            for key, value in self._families[name].values.items():
+            values, _ = self._merged(self._families[name])
+            for key, value in values.items():
                 for k, v in key:
                     if k == label:
                         out[v] = out.get(v, 0.0) + value
@@ -145,7 +216,7 @@ class Metrics:
     def render(self) -> str:
         with self._lock:
             families = [
-                (f.name, f.kind, f.help, f.collector, dict(f.values), _copy_hists(f))
+                (f.name, f.kind, f.help, f.collector, *self._merged(f))
                 for f in self._families.values()
             ]
         lines: list[str] = []
@@ -153,7 +224,8 @@ class Metrics:
             lines.append(f"# HELP {name} {_escape_help(help_text)}")
             lines.append(f"# TYPE {name} {kind}")
             if collector is not None:
-                values.update(collector())
+                for key, value in collector():
+                    values[key] = values.get(key, 0.0) + value
             for key, value in sorted(values.items()):
                 lines.append(f"{name}{_fmt_labels(key)} {_fmt_value(value)}")
             for key, hist in sorted(hists.items()):

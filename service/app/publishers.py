@@ -30,6 +30,7 @@ from typing import Any, Final
 
 log = logging.getLogger(__name__)
 
+DUPLICATE_PUBLISHERS: Final = "mapping_duplicate_publishers_total"
 DEFAULT_TAKEOVER_AFTER_S: Final = 5.0
 # A conflict stays flagged in /health this long after the second publisher's last scan.
 DEFAULT_CONFLICT_HOLD_S: Final = 30.0
@@ -79,8 +80,12 @@ class PublisherGuard:
         on_refused: Callable[[str], None] | None = None,
         on_intruder: Callable[[str], None] | None = None,
         max_robots: int = DEFAULT_MAX_ROBOTS,
+        speaks_for: Callable[[str], bool] | None = None,
     ) -> None:
+        """`speaks_for(robot_id)`: whether this guard logs a second publisher's token for
+        that robot (several mapper processes follow every token; the robot's own logs it)."""
         self._max_robots = max_robots
+        self._speaks_for = speaks_for
         self._takeover_ns = int(takeover_after_s * 1e9)
         self._hold_ns = int(conflict_hold_s * 1e9)
         self._clock_ns = clock_ns
@@ -105,7 +110,8 @@ class PublisherGuard:
             else:
                 robot.tokens.discard(source)
             count, owner = len(robot.tokens), robot.owner
-        if present and count > 1 and source != owner:
+        speaks = self._speaks_for is None or self._speaks_for(robot_id)
+        if present and count > 1 and source != owner and speaks:
             # Same log key as a refused scan of that source: one line per second publisher.
             self._log_once(
                 robot_id,

@@ -33,18 +33,21 @@ from service.app.ingest import Ingest
 from service.app.instance import FleetMember
 from service.app.mapper import Engine, MapperPool
 from service.app.metrics import Labels, Metrics, labels
-from service.app.publishers import PublisherGuard
+from service.app.publishers import DUPLICATE_PUBLISHERS, PublisherGuard, PublisherStatus
 from service.app.sessions import SessionManager
 from service.app.settings import ServiceSettings, is_loopback_host
 from service.app.store import DataDir, MapStore
 
 if TYPE_CHECKING:
+    from clients.wire import Pose
     from service.app.backend import GraphSnapshot
     from service.app.foxglove import FoxgloveView
+    from service.app.ingest import IngestStats
+    from service.app.mapper_ingest import IngestConfig
+    from service.app.metrics import Snapshot
 
 log = logging.getLogger(__name__)
 
-DUPLICATE_PUBLISHERS = "mapping_duplicate_publishers_total"
 HOUSEKEEPING_PERIOD_S = 10.0
 
 
@@ -63,7 +66,19 @@ class MappingRuntime:
         processes = settings.ingest.mapper_processes
         if engine is None:
             engine = Engine(loop_closure=settings.ingest.loop_closure)
-        self.mapper_pool = MapperPool(processes, engine) if processes else None
+        # With `ingest_in_mappers` the mapper processes take the robots' scans from Zenoh
+        # themselves; this process does not subscribe to them (service/app/mapper_ingest.py).
+        self.ingest_in_mappers = bool(processes and settings.ingest.ingest_in_mappers)
+        self.mapper_pool = (
+            MapperPool(
+                processes,
+                engine,
+                self._ingest_config if self.ingest_in_mappers else None,
+                self._on_mapper_stats,
+            )
+            if processes
+            else None
+        )
         self.sessions = SessionManager(
             self.data,
             self.maps,
@@ -72,6 +87,8 @@ class MappingRuntime:
             make_mapper=self.mapper_pool.new_mapper if self.mapper_pool is not None else None,
             render_map_files=render.map_files,
             max_open_sessions=settings.ingest.max_robots,
+            router=self.mapper_pool if self.ingest_in_mappers else None,
+            on_pose=self._to_streams,
         )
         prefix = settings.zenoh.prefix
         self.fanout = PoseFanout(
@@ -177,13 +194,41 @@ class MappingRuntime:
             self._alive_gauge,
         )
 
+    # -- mapper processes that ingest ----------------------------------------------------------
+
+    def _ingest_config(self, index: int) -> IngestConfig:
+        """Mapper process `index`'s share of the ingest: a Zenoh client of this service's
+        endpoints (its listeners, reached on loopback; else the routers it connects to)."""
+        from service.app.mapper_ingest import IngestConfig  # noqa: PLC0415
+
+        z = self.settings.zenoh
+        endpoints = tuple(_loopback(e) for e in z.listen) or tuple(z.connect)
+        return IngestConfig(
+            index=index,
+            processes=self.settings.ingest.mapper_processes,
+            prefix=z.prefix,
+            patterns=tuple(RobotPatterns(self.settings.fleet.robots).patterns),
+            endpoints=endpoints,
+            settings=self.settings.ingest,
+        )
+
+    def _to_streams(self, pose: Pose) -> None:
+        self.fanout.to_streams(pose)
+
+    def _on_mapper_stats(
+        self, source: str, generation: int, snap: Snapshot, stats: IngestStats
+    ) -> None:
+        """A mapper process's counters (every half second): /metrics and /health add them."""
+        self.metrics.set_external(source, generation, snap)
+        self.ingest.remote[source] = stats
+
     # -- lifecycle -------------------------------------------------------------------------
 
     def start(self) -> None:
         try:
             self.data.open()
             self.maps.load()
-            if self.mapper_pool is not None:
+            if self.mapper_pool is not None and not self.ingest_in_mappers:
                 self.mapper_pool.start()
             t0 = time.monotonic()
             self.sessions.load_all()
@@ -194,6 +239,8 @@ class MappingRuntime:
                 time.monotonic() - t0,
             )
             self._open_zenoh()
+            if self.mapper_pool is not None and self.ingest_in_mappers:
+                self.mapper_pool.start()  # their Zenoh sessions connect to ours
             self._start_foxglove()
             # HTTP serves at once: each session reports `restoring` until it is replayed.
             self.sessions.restore_all(background=True)
@@ -219,25 +266,29 @@ class MappingRuntime:
             on_scan: Any = self.ingest.on_sample
             if len(patterns) > 1:  # overlapping patterns: each scan is taken by its first one
                 on_scan = functools.partial(self._on_scan, index)
-            self._subscribers.append(
-                self.zenoh.declare_subscriber(scan_wildcard(z.prefix, pattern), on_scan)
-            )
+            if not self.ingest_in_mappers:
+                self._subscribers.append(
+                    self.zenoh.declare_subscriber(scan_wildcard(z.prefix, pattern), on_scan)
+                )
             self._subscribers.append(
                 self.zenoh.liveliness().declare_subscriber(
                     alive_wildcard(z.prefix, pattern), self._on_alive, history=True
                 )
             )
-            # One token per publisher of a robot: who else publishes on its key.
-            self._subscribers.append(
-                self.zenoh.liveliness().declare_subscriber(
-                    publisher_alive_wildcard(z.prefix, pattern),
-                    self._on_publisher_alive,
-                    history=True,
+            # One token per publisher of a robot: who else publishes on its key (followed
+            # where the scans arrive: here, or in the mapper processes that ingest).
+            if not self.ingest_in_mappers:
+                self._subscribers.append(
+                    self.zenoh.liveliness().declare_subscriber(
+                        publisher_alive_wildcard(z.prefix, pattern),
+                        self._on_publisher_alive,
+                        history=True,
+                    )
                 )
-            )
         log.info(
-            "Zenoh session %s subscribed to %s",
+            "Zenoh session %s: %s subscribed to %s",
             self.zenoh.zid(),
+            "the mapper processes" if self.ingest_in_mappers else "this process",
             ", ".join(scan_wildcard(z.prefix, p) for p in patterns),
         )
         for session in self.sessions.list():
@@ -410,6 +461,14 @@ class MappingRuntime:
 
     # -- observations ------------------------------------------------------------------------
 
+    def publisher_status(self) -> list[PublisherStatus]:
+        """Who publishes each robot's scans: this process's guard (liveliness tokens) and,
+        for robots whose scans mapper processes take in, theirs (which saw the scans)."""
+        merged = {p.robot_id: p for p in self.publishers.status()}
+        for remote in list(self.ingest.remote.values()):
+            merged.update((p.robot_id, p) for p in remote.publishers)
+        return [merged[r] for r in sorted(merged)]
+
     def alive_robots(self) -> set[str]:
         with self._alive_lock:
             return set(self._alive)
@@ -469,3 +528,8 @@ class MappingRuntime:
             "peers": len(list(info.peers_zid())),
             "routers": len(list(info.routers_zid())),
         }
+
+
+def _loopback(endpoint: str) -> str:
+    """A listen endpoint as a process on this machine connects to it (`0.0.0.0` -> `127.0.0.1`)."""
+    return endpoint.replace("/0.0.0.0:", "/127.0.0.1:").replace("/[::]:", "/[::1]:")

@@ -28,7 +28,7 @@ from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Final, Literal, NamedTuple
+from typing import Any, Final, Literal, NamedTuple, Protocol
 
 import numpy as np
 import numpy.typing as npt
@@ -56,6 +56,7 @@ from service.app.backend import EMPTY_SNAPSHOT, GraphSnapshot, correct_poses
 from service.app.errors import (
     ConflictError,
     NotFoundError,
+    ServiceError,
     StoreError,
     UnavailableError,
     restoring_error,
@@ -98,6 +99,8 @@ HELD_SCANS_MAX: Final = 4096
 IDLE_CLOSE_S: Final = 30.0
 # At shutdown, how long a session waits for its back end to take in the nodes handed to it.
 BACKEND_DRAIN_S: Final = 10.0
+# Tries to lease a recording to a mapper process that dies meanwhile (each rebuilds first).
+LEASE_ATTEMPTS: Final = 5
 # Checkpoints kept per session: the newest, and one before it in case the newest is damaged.
 CHECKPOINTS_KEPT: Final = 2
 
@@ -215,9 +218,14 @@ class MappingSession:
         self._leased = False
         self._lost = False  # the mapper process died while it held the lease: rebuild first
         self._checkpoint_due = False
+        self._checkpoint_asked = False
         self.fsync_each = store._fsync_each
+        # Where its poses go besides Zenoh when its mapper process ingests and publishes them
+        # itself (the browser streams: `PoseFanout.to_streams`).
+        self.on_pose: Callable[[Pose], None] | None = None
         if not restoring:
             self._mapper = make_mapper(meta.id, meta.use_odometry, meta.resolution_m)
+            self._attach(self._mapper)
 
     @classmethod
     def damaged(cls, directory: Path, reason: str, make_mapper: MapperFactory) -> MappingSession:
@@ -321,6 +329,7 @@ class MappingSession:
             end_offset=end,
             next_seq=self._poses[-1].seq + 1 if self._poses else 0,
             fsync_each=self.fsync_each,
+            last_stamp_ns=self._poses[-1].stamp_ns if self._poses else None,
         )
         try:
             self._mapper.delegate(spec)  # type: ignore[union-attr]
@@ -349,7 +358,69 @@ class MappingSession:
             return
         self._store.lease_back(end)
 
-    def _done(self, on_done: OnIngested, done: Done) -> None:
+    # -- mapper processes that ingest: the lease is theirs whenever the session is active ------
+
+    @property
+    def _pushes(self) -> bool:
+        return bool(getattr(self._mapper, "pushes", False))
+
+    def _attach(self, mapper: Mapper) -> None:
+        """Hear from a mapper process that ingests the robot's scans itself."""
+        if getattr(mapper, "pushes", False):
+            mapper.on_pushed = self._on_pushed  # type: ignore[attr-defined]
+            mapper.on_want = self.lease_if_ready  # type: ignore[attr-defined]
+            mapper.on_lost = self._on_lost  # type: ignore[attr-defined]
+
+    def lease_if_ready(self) -> None:
+        """Give the mapper process that ingests the robot's scans the recording's lease, when
+        the session is active and ready: after its creation or restore, a checkpoint, a
+        reset, an idle close, or its process's death (rebuilt first). The process holds the
+        robot's scans until then."""
+        with self.lock:
+            self._lease_locked()
+
+    def _lease_locked(self) -> None:
+        self._checkpoint_asked = False
+        if not self.is_active or self._restoring or not self._pushes or self._cancel.is_set():
+            return  # not mapping, or shutting down (`close` took the lease back for good)
+        for attempt in range(LEASE_ATTEMPTS):
+            try:
+                if self._lost:
+                    self._recover()
+                if self._checkpoint_due:
+                    self._revoke()
+                    self._write_checkpoint()
+                if not self._leased and self._pushes:
+                    self._delegate()
+                return
+            except MapperLostError as err:  # its process died (again): started at the next call
+                log.error("session %s: %s; rebuilding it", self.id, err)
+                self._lost = True
+                time.sleep(0.1 * (attempt + 1))  # a process just killed may not be reaped yet
+            except (MapperError, OSError, ServiceError) as err:
+                log.error("session %s: the lease could not be given: %s", self.id, err)
+                return
+
+    def _on_lost(self) -> None:
+        """Its mapper process died (task thread): rebuild from the recording, lease again."""
+        self._lost = True
+        self.lease_if_ready()
+
+    def _on_pushed(self, done: Done) -> None:
+        """A scan the mapper process ingested, recorded, mapped and published itself (on its
+        reader thread): the trajectory, the counters and the browser streams learn it."""
+        self._done(self._pushed_applied, done, encode=False)
+
+    def _pushed_applied(self, result: Ingested) -> None:
+        if result.pose is not None and self.on_pose is not None:
+            self.on_pose(result.pose)
+        if self._checkpoint_due and not self._checkpoint_asked:
+            self._checkpoint_asked = True  # once: the lease is taken back, written, given again
+            later = getattr(self._mapper, "later", None)
+            if later is not None:
+                later(self.lease_if_ready)
+
+    def _done(self, on_done: OnIngested, done: Done, *, encode: bool = True) -> None:
         """A forwarded scan's answer, on the mapper's reader thread (no session lock: a
         control operation may hold it while it waits for the lease back)."""
         if not done.recorded:
@@ -371,7 +442,7 @@ class MappingSession:
             # graph puts it now.
             published = _moved(pose, self._correction)
             if published is not pose:
-                encoded = encode_pose(published)
+                encoded = encode_pose(published) if encode else None
         elif done.error is not None and done.error.startswith("estimator"):
             self._note_estimator_error(done.seq, done.error)
         if self.scans_accepted - self._checkpoint_scans >= self.checkpoint_every_scans:
@@ -475,6 +546,7 @@ class MappingSession:
         if self._mapper is not None:
             self._mapper.close()
         self._mapper = self._make_mapper(self.id, self.use_odometry, self.resolution_m)
+        self._attach(self._mapper)
         return self._mapper
 
     def _rebuild_mapper(self) -> None:
@@ -609,6 +681,7 @@ class MappingSession:
                     self._ingest_locked(payload, scan)
                 except (OSError, StoreError) as err:
                     log.error("session %s: a held scan could not be recorded: %s", self.id, err)
+            self._lease_locked()  # a process that ingests held the robot's scans meanwhile
         if self.held_dropped:
             log.warning(
                 "session %s: %d scans arrived during the restore beyond the %d held; dropped",
@@ -845,6 +918,7 @@ class MappingSession:
             self._records_tail = 0
             self._ckpt_segment = 0
             self._checkpoint_scans = 0
+            self._lease_locked()
 
     def delete(self, trash_dir: Any) -> None:
         self._cancel.set()
@@ -1192,6 +1266,9 @@ def _moved(pose: Pose, correction: tuple[float, float, float]) -> Pose:
     )
 
 
+moved_pose = _moved  # for mapper processes that publish poses themselves
+
+
 def _same_pose(a: Pose, b: Pose) -> bool:
     return (
         a.seq == b.seq
@@ -1199,6 +1276,14 @@ def _same_pose(a: Pose, b: Pose) -> bool:
         and math.isclose(a.y_m, b.y_m, abs_tol=1e-9)
         and math.isclose(a.theta_rad, b.theta_rad, abs_tol=1e-9)
     )
+
+
+class ScanRouter(Protocol):
+    """Mapper processes that ingest their robots' scans (`MapperPool` with `ingest`)."""
+
+    def place(self, session_id: str, robot_id: str) -> None: ...
+    def activate(self, robot_id: str, session_id: str) -> None: ...
+    def deactivate(self, robot_id: str, session_id: str) -> None: ...
 
 
 class SessionManager:
@@ -1214,7 +1299,12 @@ class SessionManager:
         make_mapper: MapperFactory | None = None,
         render_map_files: Callable[[MapSnapshot], dict[str, bytes]] | None = None,
         max_open_sessions: int | None = None,
+        router: ScanRouter | None = None,
+        on_pose: Callable[[Pose], None] | None = None,
     ) -> None:
+        """`router`: mapper processes that ingest their robots' scans themselves, told which
+        robot has which active session; `on_pose`: where the poses they publish go besides
+        Zenoh (the browser streams)."""
         self._data = data
         self._maps = maps
         self._fsync_each = fsync_each
@@ -1227,6 +1317,8 @@ class SessionManager:
         self._restored = threading.Event()
         self._restored.set()
         self.max_open_sessions = max_open_sessions
+        self._router = router
+        self._on_pose = on_pose
 
     def load_all(self) -> None:
         """Register every session of the data directory, in status `restoring` (fast: reads
@@ -1245,6 +1337,9 @@ class SessionManager:
                 # Never silently gone: listed as `damaged`, files left for fsck.
                 log.error("session %s cannot be restored (files kept): %s", directory.name, err)
                 session = MappingSession.damaged(directory, err.reason, self._make_mapper)
+            session.on_pose = self._on_pose
+            if self._router is not None:
+                self._router.place(session.id, session.robot_id)
             with self._lock:
                 self._sessions[session.id] = session
                 if session.state == "active" and session.status != "damaged":
@@ -1257,6 +1352,11 @@ class SessionManager:
                         )
                         self._sessions[previous].mark_stopped()
                     self._active[session.robot_id] = session.id
+        if self._router is not None:
+            with self._lock:
+                active = list(self._active.items())
+            for robot_id, session_id in active:  # their scans are held until the restore ends
+                self._router.activate(robot_id, session_id)
 
     def restore_all(self, *, background: bool = True) -> None:
         """Replay every restoring session, oldest first (in a thread when `background`)."""
@@ -1315,16 +1415,27 @@ class SessionManager:
                 resolution_m=resolution_m,
                 use_odometry=use_odometry,
             )
+            if self._router is not None:
+                self._router.place(meta.id, robot_id)
+                self._router.activate(robot_id, meta.id)
             try:
                 store = SessionStore.create(
                     self._data.sessions_dir, meta, fsync_each=self._fsync_each
                 )
+                session = MappingSession(store, self._make_mapper)
             except OSError as err:
+                if self._router is not None:
+                    self._router.deactivate(robot_id, meta.id)
                 # No paths in the answer: the reason only (it goes to clients).
                 raise _create_error(err) from err
-            session = MappingSession(store, self._make_mapper)
+            except BaseException:
+                if self._router is not None:
+                    self._router.deactivate(robot_id, meta.id)
+                raise
+            session.on_pose = self._on_pose
             self._sessions[session.id] = session
             self._active[robot_id] = session.id
+        session.lease_if_ready()  # the robot's mapper process maps its scans from now on
         log.info("session %s created for robot %s", session.id, robot_id)
         return session
 
@@ -1354,6 +1465,8 @@ class SessionManager:
         with self._lock:
             if self._active.get(session.robot_id) == session.id:
                 del self._active[session.robot_id]
+        if self._router is not None:
+            self._router.deactivate(session.robot_id, session.id)
         log.info("session %s stopped", session.id)
         return session
 
@@ -1373,6 +1486,8 @@ class SessionManager:
             self._sessions.pop(session.id, None)
             if self._active.get(session.robot_id) == session.id:
                 del self._active[session.robot_id]
+        if self._router is not None:
+            self._router.deactivate(session.robot_id, session.id)
         session.delete(self._data.trash_dir)
         maps: Sequence[SavedMapMeta] = ()
         if not keep_maps:

@@ -110,6 +110,12 @@ class IngestSettings(_Frozen):
     # The back end (loop search, pose graph) beside every session's front end, in a background
     # thread of the process that runs the estimator (docs/backend.md, "Live").
     loop_closure: bool = Field(default=True, description="close loops (False: the front end alone)")
+    # With mapper processes: each process subscribes to its share of the scan keys itself and
+    # runs the whole per-scan path (decode, validate, record, map, publish); the service's
+    # process only routes Zenoh, serves HTTP and does control (service/app/mapper.py).
+    ingest_in_mappers: bool = Field(
+        default=False, description="scans go straight to the mapper processes (needs K > 0)"
+    )
 
     @property
     def newcomer_depth(self) -> int:
@@ -178,6 +184,15 @@ class ServiceSettings(_Frozen):
             check_instance_id(self.fleet.effective_instance_id(self.http.port))
         except (InvalidPrefixError, InvalidInstanceIdError) as err:
             raise SettingsError(str(err)) from err
+        if self.ingest.ingest_in_mappers:
+            if not self.ingest.mapper_processes:
+                raise SettingsError("--ingest-in-mappers needs --mapper-processes K > 0")
+            z = self.zenoh
+            if not (z.listen or z.connect):
+                raise SettingsError(
+                    "--ingest-in-mappers: the mapper processes connect to the service's Zenoh "
+                    "endpoints; give --zenoh-listen (or --zenoh-connect)"
+                )
         for name, value in (("token", self.token), ("read token", self.read_token)):
             if value is not None:
                 check_token_text(value, name)
@@ -348,7 +363,12 @@ def build_settings(
             if getattr(args, "mapper_processes", None) is not None
             else from_env(mapper_processes="MAPPER_PROCESSES")
         )
-        | ({"loop_closure": False} if getattr(args, "no_loop_closure", False) else {}),
+        | ({"loop_closure": False} if getattr(args, "no_loop_closure", False) else {})
+        | (
+            {"ingest_in_mappers": True}
+            if getattr(args, "ingest_in_mappers", False)
+            else from_env(ingest_in_mappers="INGEST_IN_MAPPERS")
+        ),
         "fleet": {
             **({"robots": tuple(args.robots)} if getattr(args, "robots", None) else {}),
             **(

@@ -56,7 +56,7 @@ def _health(runtime: Runtime) -> Health:
     alive = runtime.alive_robots()
     robots = {r.robot_id: r for r in runtime.ingest.robots()}
     active = {s.robot_id: s.id for s in runtime.sessions.list() if s.is_active}
-    publishers = {p.robot_id: p for p in runtime.publishers.status()}
+    publishers = {p.robot_id: p for p in runtime.publisher_status()}
     views = []
     for robot_id in sorted(set(robots) | alive | set(active) | set(publishers)):
         queue = robots.get(robot_id)

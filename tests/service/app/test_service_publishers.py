@@ -120,8 +120,13 @@ def robot_health(svc: ServiceProc, robot_id: str) -> dict[str, object]:
 
 @pytest.mark.slow
 @pytest.mark.timeout(120)
-def test_two_agents_as_one_robot(tmp_path: Path) -> None:
-    svc = ServiceProc(tmp_path / "data")
+@pytest.mark.parametrize(
+    "layout",
+    [[], ["--mapper-processes", "2", "--ingest-in-mappers"]],
+    ids=["one-process", "ingest-in-mappers"],
+)
+def test_two_agents_as_one_robot(tmp_path: Path, layout: list[str]) -> None:
+    svc = ServiceProc(tmp_path / "data", extra_args=layout)
     svc.start()
     try:
         sid = svc.create_session("r9")["id"]
