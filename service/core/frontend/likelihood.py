@@ -8,10 +8,12 @@ maximum of Gaussians would flatten its top by the noise). Smooth enough for Gaus
 bicubic interpolation (hector's `ScanMatcher` uses bilinear), cheap enough to look up by cell in the
 correlative search.
 
-Beside the field, a coarse mask of the space the submap's rays crossed: a point where no ray
-went scores `unknown_score`, neither a hit nor a miss. No ray-cast misses lower the field: a
-submap lives for a bounded stretch of travel (`MatcherParams.scans_per_submap`), which bounds
-how long a person's trail stays in it. The grid grows in whole blocks as the robot moves.
+A point far from every surface costs the same whether its space was seen empty or never seen:
+the residual's cap, an outlier. Scoring unseen space any better would pull a scan out of the
+submap, into what it has not mapped, wherever that is cheaper than fitting its walls. No
+ray-cast misses lower the field: a submap lives for a bounded stretch of
+travel (`MatcherParams.scans_per_submap`), which bounds how long a person's trail stays in it.
+The grid grows in whole blocks as the robot moves.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from service.core.types import FloatArray
 F32Array = npt.NDArray[np.float32]
 
 _GROW_CELLS = 128  # margin added on each side when a hit falls outside (6.4 m at 5 cm)
-_KNOWN_FACTOR = 4  # the observed-space mask's cell, in grid cells (0.2 m at 5 cm)
+_LAYERS = ("values", "density")  # the grids, grown together
 
 
 def _local_max(grid: F32Array, radius: int) -> F32Array:
@@ -63,20 +65,13 @@ def _catmull_rom(t: FloatArray) -> tuple[list[FloatArray], list[FloatArray]]:
     return weights, slopes
 
 
-def _round_up(cells: int) -> int:
-    """Whole mask cells."""
-    return -(-cells // _KNOWN_FACTOR) * _KNOWN_FACTOR
-
-
 class LikelihoodGrid:
     """A growing likelihood field in the map frame. Row = y, column = x; cell (i, j)'s centre
     is at origin + ((j + 0.5)·res, (i + 0.5)·res)."""
 
-    def __init__(self, resolution_m: float, hit_sigma_m: float, unknown_score: float) -> None:
+    def __init__(self, resolution_m: float, hit_sigma_m: float) -> None:
         self.resolution_m = resolution_m
         self.hit_sigma_m = hit_sigma_m
-        self.unknown_score = unknown_score
-        self.known: npt.NDArray[np.bool_] = np.zeros((0, 0), dtype=np.bool_)
         self.radius_cells = max(1, math.ceil(3.0 * hit_sigma_m / resolution_m))
         self.origin_m = (0.0, 0.0)
         self.values: F32Array = np.zeros((0, 0), dtype=np.float32)
@@ -92,15 +87,14 @@ class LikelihoodGrid:
         return state
 
     # ------------------------------------------------------------------ building
-    def insert(self, points_map_m: FloatArray, sensor_m: tuple[float, float]) -> None:
-        """Add every hit's Gaussian to the surface density, renormalise the field around them,
-        and mark the space their rays crossed as observed."""
+    def insert(self, points_map_m: FloatArray) -> None:
+        """Add every hit's Gaussian to the surface density and renormalise the field around
+        them."""
         self.inserted += 1
         self._costs = None
         if points_map_m.shape[0] == 0:
             return
-        self._ensure(np.vstack((points_map_m, np.asarray([sensor_m]))))
-        self._observe(points_map_m, sensor_m)
+        self._ensure(points_map_m)
         res = self.resolution_m
         v, u = self.cell_coords(points_map_m)
         ci, cj = np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)
@@ -112,9 +106,8 @@ class LikelihoodGrid:
         order = np.argsort(flat, kind="stable")
         cells = flat[order]
         starts = np.flatnonzero(np.diff(cells, prepend=-1))
-        self.density.reshape(-1)[cells[starts]] += np.add.reduceat(val[order], starts).astype(
-            np.float32
-        )
+        added = np.add.reduceat(val[order], starts)
+        self.density.reshape(-1)[cells[starts]] += added.astype(np.float32)
         rad = self.radius_cells
         self._normalise(
             int(ci.min()) - rad,
@@ -137,21 +130,6 @@ class LikelihoodGrid:
         c0, c1 = max(0, j0) - b0, min(w, j1) - b0
         self.values[a0 + r0 : a0 + r1, b0 + c0 : b0 + c1] = field[r0:r1, c0:c1]
 
-    def _observe(self, points_map_m: FloatArray, sensor_m: tuple[float, float]) -> None:
-        """Mark the mask cells along each ray, sensor to hit, as observed."""
-        step_m = 0.5 * _KNOWN_FACTOR * self.resolution_m
-        d = points_map_m - np.asarray(sensor_m)
-        counts = np.ceil(np.hypot(d[:, 0], d[:, 1]) / step_m).astype(np.int64) + 1
-        ray = np.repeat(np.arange(d.shape[0]), counts)
-        start = np.repeat(np.cumsum(counts) - counts, counts)
-        frac = (np.arange(ray.shape[0]) - start) / np.maximum(counts[ray] - 1, 1)
-        xs = sensor_m[0] + d[ray, 0] * frac
-        ys = sensor_m[1] + d[ray, 1] * frac
-        cell = _KNOWN_FACTOR * self.resolution_m
-        rows = ((ys - self.origin_m[1]) / cell).astype(np.int64)
-        cols = ((xs - self.origin_m[0]) / cell).astype(np.int64)
-        self.known[rows, cols] = True
-
     def _ensure(self, points_map_m: FloatArray) -> None:
         """Grow the grid so every point's stamp fits inside it."""
         res, pad = self.resolution_m, (self.radius_cells + 2) * self.resolution_m
@@ -166,28 +144,22 @@ class LikelihoodGrid:
             oy = math.floor(y0 / res) * res - _GROW_CELLS * res
             nx = math.ceil((x1 - x0) / res) + 2 * _GROW_CELLS
             ny = math.ceil((y1 - y0) / res) + 2 * _GROW_CELLS
-            nx, ny = _round_up(nx), _round_up(ny)
             self.origin_m = (ox, oy)
-            self.values = np.zeros((ny, nx), dtype=np.float32)
-            self.density = np.zeros((ny, nx), dtype=np.float32)
-            self.known = np.zeros((ny // _KNOWN_FACTOR, nx // _KNOWN_FACTOR), dtype=np.bool_)
+            for name in _LAYERS:
+                setattr(self, name, np.zeros((ny, nx), dtype=np.float32))
             return
 
         def extra(short_m: float) -> int:  # cells to add on a side short by `short_m`
-            return _round_up(math.ceil(short_m / res) + _GROW_CELLS) if short_m > 0.0 else 0
+            return math.ceil(short_m / res) + _GROW_CELLS if short_m > 0.0 else 0
 
         add_left, add_down = extra(ox - x0), extra(oy - y0)
         add_right, add_up = extra(x1 - (ox + w * res)), extra(y1 - (oy + h * res))
-        grown = np.zeros((h + add_down + add_up, w + add_left + add_right), dtype=np.float32)
-        grown[add_down : add_down + h, add_left : add_left + w] = self.values
-        self.values = grown
-        density = np.zeros_like(grown)
-        density[add_down : add_down + h, add_left : add_left + w] = self.density
-        self.density = density
-        k = _KNOWN_FACTOR
-        known = np.zeros((grown.shape[0] // k, grown.shape[1] // k), dtype=np.bool_)
-        known[add_down // k : (add_down + h) // k, add_left // k : (add_left + w) // k] = self.known
-        self.known = known
+        shape = (h + add_down + add_up, w + add_left + add_right)
+        for name in _LAYERS:
+            grown = np.zeros(shape, dtype=np.float32)
+            if getattr(self, name).shape == (h, w):
+                grown[add_down : add_down + h, add_left : add_left + w] = getattr(self, name)
+            setattr(self, name, grown)
         self.origin_m = (ox - add_left * res, oy - add_down * res)
 
     # ------------------------------------------------------------------ reading
@@ -230,35 +202,18 @@ class LikelihoodGrid:
         grad = np.column_stack((d_du, d_dv)) / self.resolution_m
         value[~inside] = 0.0
         grad[~inside] = 0.0
-        unknown = ~self._known_at(np.rint(v).astype(np.int64), np.rint(u).astype(np.int64))
-        value[unknown] = self.unknown_score
-        grad[unknown] = 0.0
         return np.clip(value, 0.0, 1.0), grad
 
-    def _known_at(
-        self, rows: npt.NDArray[np.int64], cols: npt.NDArray[np.int64]
-    ) -> npt.NDArray[np.bool_]:
-        """Whether the mask says each cell's space was observed (False outside the grid)."""
-        kr, kc = rows // _KNOWN_FACTOR, cols // _KNOWN_FACTOR
-        h, w = self.known.shape
-        inside = (kr >= 0) & (kc >= 0) & (kr < h) & (kc < w) & (rows >= 0) & (cols >= 0)
-        out = np.zeros(rows.shape, dtype=np.bool_)
-        out[inside] = self.known[kr[inside], kc[inside]]
-        return out
-
     def residual_costs(self, max_residual_sigmas: float) -> F32Array:
-        """Per cell, the match's r² = -2 ln M (capped; unknown space at `unknown_score`), with
-        a border of unknown cells: the correlative search gathers from it with clipped indices
-        and no other test (it scores thousands of poses per scan)."""
+        """Per cell, the match's r² = -2 ln M (capped), with a border at the cap: the
+        correlative search gathers from it with clipped indices and no other test (it scores
+        thousands of poses per scan)."""
         if self._costs is not None and self._costs[0] == max_residual_sigmas:
             return self._costs[1]
-        unknown = float(residual_sq(np.asarray(self.unknown_score), max_residual_sigmas))
-        h, w = self.values.shape
-        known = np.repeat(np.repeat(self.known, _KNOWN_FACTOR, axis=0), _KNOWN_FACTOR, axis=1)
-        costs = np.full((h, w), unknown, dtype=np.float32)
-        costs[known] = residual_sq(self.values[known], max_residual_sigmas)
-        if h and w:
-            costs[[0, -1], :] = unknown
-            costs[:, [0, -1]] = unknown
+        costs = residual_sq(self.values, max_residual_sigmas).astype(np.float32)
+        if costs.size:
+            cap = np.float32(max_residual_sigmas**2)
+            costs[[0, -1], :] = cap
+            costs[:, [0, -1]] = cap
         self._costs = (max_residual_sigmas, costs)
         return costs

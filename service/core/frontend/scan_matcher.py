@@ -54,7 +54,6 @@ class MatcherParams:
     # --- submaps
     resolution_m: float = 0.05  # likelihood grid cell
     hit_sigma_m: float = 0.05  # width of a hit's Gaussian in the grid
-    unknown_score: float = 0.5  # a point where no submap ray went: neither hit nor miss
     surface_max_gap_m: float = 0.5  # neighbouring returns closer than this are one surface ...
     surface_gap_per_range: float = 0.1  # ... or than this × their range (grazing walls)
     scans_per_submap: int = 30  # a new submap every this many keyframes
@@ -64,6 +63,7 @@ class MatcherParams:
     # --- prediction
     use_odometry: bool = True  # odometry (when the scan carries it) is the motion prior
     max_extrapolation_s: float = 0.5  # constant velocity is extrapolated at most this long
+    velocity_window_s: float = 0.2  # the velocity is measured over at least this much time
     accel_sigma_m_s2: float = 1.0  # the velocity's random walk (a Kalman filter) ...
     angular_accel_sigma_deg_s2: float = 90.0  # ... and the turn rate's
     gap_speed_m_s: float = 0.5  # σ grows by this × the gap beyond max_extrapolation_s ...
@@ -85,7 +85,7 @@ class FrontEndStats:
     stamp_backwards: int = 0  # scans not after the previous one: not matched
 
 
-STATE_VERSION = 1  # of `MatcherState`: a checkpoint of another version is refused, not guessed
+STATE_VERSION = 2  # of `MatcherState`: a checkpoint of another version is refused, not guessed
 
 
 @dataclass
@@ -97,6 +97,7 @@ class MatcherState:
     stamp_ns: int | None
     velocity: FloatArray  # (vx, vy, ω) per second, robot frame
     velocity_cov: FloatArray
+    velocity_anchor: tuple[Pose2D, int] | None  # (pose, stamp_ns) the velocity was last measured at
     odom: Pose2D | None
     submaps: list[LikelihoodGrid]
     keyframe_pose: Pose2D | None
@@ -151,6 +152,7 @@ class ScanMatcherFrontEnd:
         self._stamp_ns: int | None = None
         self._velocity = np.zeros(3)  # (vx, vy, ω) per second, robot frame
         self._velocity_cov = _UNKNOWN_VELOCITY_COV  # its covariance
+        self._velocity_anchor: tuple[Pose2D, int] | None = None
         self._odom: Pose2D | None = None
         self._submaps: list[LikelihoodGrid] = []
         self._keyframe_pose: Pose2D | None = None
@@ -169,6 +171,7 @@ class ScanMatcherFrontEnd:
             self._stamp_ns,
             self._velocity,
             self._velocity_cov,
+            self._velocity_anchor,
             self._odom,
             self._submaps,
             self._keyframe_pose,
@@ -188,6 +191,7 @@ class ScanMatcherFrontEnd:
         self.params = MatcherParams(**saved["params"])
         self._pose, self._stamp_ns = state.pose, state.stamp_ns
         self._velocity, self._velocity_cov = state.velocity, state.velocity_cov
+        self._velocity_anchor = state.velocity_anchor
         self._odom, self._submaps = state.odom, state.submaps
         self._keyframe_pose, self._cov_since_keyframe = (
             state.keyframe_pose,
@@ -246,7 +250,9 @@ class ScanMatcherFrontEnd:
             delta = Pose2D(v[0] * t, v[1] * t, v[2] * t)
             # The velocity's own uncertainty over the extrapolated time, and beyond it, what the
             # robot may have done during a pause nobody saw.
-            var = np.diag(self._velocity_cov + self._velocity_noise(gap_s)) * t * t
+            anchor = self._velocity_anchor
+            since_s = gap_s if anchor is None else (scan.stamp_ns - anchor[1]) * 1e-9
+            var = np.diag(self._velocity_cov + self._velocity_noise(since_s)) * t * t
             beyond_s = gap_s - t
             sig_xy = math.sqrt(max(var[0], var[1]) + (p.gap_speed_m_s * beyond_s) ** 2)
             sig_xy += p.position_floor_m
@@ -335,25 +341,31 @@ class ScanMatcherFrontEnd:
         return np.diag([a * a, a * a, alpha * alpha])
 
     def _update_motion(self, scan: LaserScan, pose: Pose2D, h_scan: FloatArray) -> None:
-        """Kalman step of the velocity: the measured motion counts as much as the scan
-        constrained it. Along a corridor the scan says nothing, so the velocity keeps its
-        prediction there (a slipped match does not become a speed)."""
-        if self._pose is not None and self._stamp_ns is not None:
-            gap_s = (scan.stamp_ns - self._stamp_ns) * 1e-9
-            if 0.0 < gap_s <= self.params.max_extrapolation_s:
-                d = self._pose.between(pose)
-                measured = np.array([d.x_m, d.y_m, d.theta_rad]) / gap_s
-                c, s = math.cos(self._pose.theta_rad), math.sin(self._pose.theta_rad)
-                rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # map -> robot
-                info = rot @ h_scan @ rot.T
-                r = 2.0 * np.linalg.inv(info + np.eye(3) * 1e-6) / (gap_s * gap_s)
-                p_v = self._velocity_cov + self._velocity_noise(gap_s)
-                gain = p_v @ np.linalg.inv(p_v + r)
-                self._velocity = self._velocity + gain @ (measured - self._velocity)
-                self._velocity_cov = (np.eye(3) - gain) @ p_v
-            elif gap_s > self.params.max_extrapolation_s:
+        """Kalman step of the velocity: the motion since the previous step, over at least
+        `velocity_window_s` (real logs hold scans 1 ms apart, over which a match's noise would
+        be a huge speed), counts as much as the scan constrained it. Along a corridor the scan
+        says nothing, so the velocity keeps its prediction there (a slipped match does not
+        become a speed)."""
+        p = self.params
+        anchor = self._velocity_anchor
+        gap_s = 0.0 if self._stamp_ns is None else (scan.stamp_ns - self._stamp_ns) * 1e-9
+        if anchor is None or gap_s > p.max_extrapolation_s:
+            if anchor is not None:
                 self._velocity = np.zeros(3)  # after a pause: at rest until it moves again
                 self._velocity_cov = _UNKNOWN_VELOCITY_COV
+            self._velocity_anchor = (pose, scan.stamp_ns)
+        elif (span_s := (scan.stamp_ns - anchor[1]) * 1e-9) >= p.velocity_window_s:
+            d = anchor[0].between(pose)
+            measured = np.array([d.x_m, d.y_m, d.theta_rad]) / span_s
+            c, s = math.cos(anchor[0].theta_rad), math.sin(anchor[0].theta_rad)
+            rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # map -> robot
+            info = rot @ h_scan @ rot.T
+            r = 2.0 * np.linalg.inv(info + np.eye(3) * 1e-6) / (span_s * span_s)
+            p_v = self._velocity_cov + self._velocity_noise(span_s)
+            gain = p_v @ np.linalg.inv(p_v + r)
+            self._velocity = self._velocity + gain @ (measured - self._velocity)
+            self._velocity_cov = (np.eye(3) - gain) @ p_v
+            self._velocity_anchor = (pose, scan.stamp_ns)
         self._pose = pose
         self._stamp_ns = scan.stamp_ns
         if scan.odom is not None:
@@ -377,8 +389,8 @@ class ScanMatcherFrontEnd:
         pts = surface_points(pts, p.surface_max_gap_m, p.surface_gap_per_range, p.resolution_m / 2)
         world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
         if not self._submaps or self._submaps[-1].inserted >= p.scans_per_submap:
-            self._submaps.append(LikelihoodGrid(p.resolution_m, p.hit_sigma_m, p.unknown_score))
+            self._submaps.append(LikelihoodGrid(p.resolution_m, p.hit_sigma_m))
         for grid in self._submaps:
-            grid.insert(world, (pose.x_m, pose.y_m))
+            grid.insert(world)
         if len(self._submaps) > 2:
             self._submaps.pop(0)  # it holds 2 × scans_per_submap: the next one takes over

