@@ -16,7 +16,8 @@ independent evidence (Cartographer scales its occupied-space residuals the same 
 
 1. *Search* (Olson 2009; Cartographer's `RealTimeCorrelativeScanMatcher2D`): every rotation in
    a window, every whole-cell translation in a window, the scan scored by cell lookup; the
-   lowest cost wins. Found by branch and bound (`search.py`), not by scoring every pose. The windows are ±3σ of the prediction, so at 40 Hz it is a few cells
+   lowest cost wins (found by branch and bound, `search.py`, not by scoring every pose). The
+   windows are ±3σ of the prediction, so at 40 Hz it is a few cells
    and at one scan per 0.3 m it is wide.
 2. *Refine* (hector's `ScanMatcher`, Cartographer's `CeresScanMatcher2D`): Gauss-Newton on the
    bilinear field from the search's best pose, priors as residuals.
