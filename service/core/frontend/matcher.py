@@ -16,7 +16,8 @@ independent evidence (Cartographer scales its occupied-space residuals the same 
 
 1. *Search* (Olson 2009; Cartographer's `RealTimeCorrelativeScanMatcher2D`): every rotation in
    a window, every whole-cell translation in a window, the scan scored by cell lookup; the
-   lowest cost wins. The windows are ±3σ of the prediction, so at 40 Hz it is a few cells
+   lowest cost wins (found by branch and bound, `search.py`, not by scoring every pose). The
+   windows are ±3σ of the prediction, so at 40 Hz it is a few cells
    and at one scan per 0.3 m it is wide.
 2. *Refine* (hector's `ScanMatcher`, Cartographer's `CeresScanMatcher2D`): Gauss-Newton on the
    bilinear field from the search's best pose, priors as residuals.
@@ -32,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.core.frontend.likelihood import LikelihoodGrid, residual_sq
+from service.core.frontend.search import Lattice, lattice_search
 from service.core.types import FloatArray, Pose2D, rotate_points, wrap_angle
 
 
@@ -88,7 +90,75 @@ def _wall_cost_weight(priors: Priors, theta_rad: float, huber: float) -> tuple[f
 def search(
     grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
 ) -> tuple[Pose2D, int]:
-    """The lowest-cost pose on the search lattice around the prediction (cell lookup)."""
+    """The lowest-cost pose on the search lattice around the prediction (cell lookup), and how
+    many poses and blocks were scored. Branch and bound (`search.lattice_search`): the same
+    pose as scoring every lattice pose (`_brute_force_search`), for a fraction of the work."""
+    costs = grid.residual_costs(opts.max_residual_sigmas)
+    h, w = costs.shape
+    if not h or not w or points_xy_m.shape[0] == 0:
+        return priors.predicted, 0
+    pts = points_xy_m
+    if pts.shape[0] > opts.search_points:
+        pts = pts[np.linspace(0, pts.shape[0] - 1, opts.search_points).astype(np.int64)]
+    thetas, half_rows, half_cols = _window(grid, pts, priors, opts)
+    lattice = Lattice(
+        thetas_rad=thetas,
+        half_rows=half_rows,
+        half_cols=half_cols,
+        predicted_xy_m=(priors.predicted.x_m, priors.predicted.y_m),
+        predicted_theta_rad=priors.predicted.theta_rad,
+        info_pred=np.asarray(np.linalg.inv(priors.cov_pred), dtype=np.float64),
+        scan_weight=opts.scan_weight,
+        wall_heading_rad=priors.wall_heading_rad,
+        wall_sigma_rad=priors.wall_sigma_rad,
+        wall_huber=opts.wall_huber,
+    )
+    unknown = float(residual_sq(np.asarray(grid.unknown_score), opts.max_residual_sigmas))
+    k, di, dj, scored = lattice_search(grid, costs, unknown, pts, lattice)
+    res = grid.resolution_m
+    pose = Pose2D(
+        float(priors.predicted.x_m + dj * res),
+        float(priors.predicted.y_m + di * res),
+        wrap_angle(float(thetas[k])),
+    )
+    return pose, scored
+
+
+def _window(
+    grid: LikelihoodGrid, pts: FloatArray, priors: Priors, opts: MatchOptions
+) -> tuple[FloatArray, int, int]:
+    """The search lattice: its rotations (ascending), and its half widths in rows (map y) and
+    columns (map x), in cells. ±`search_sigmas` σ of the prediction, in whole cells, rotations
+    at the step one cell subtends at the farthest point; θ narrowed to the walls' heading."""
+    n = pts.shape[0]
+    res = grid.resolution_m
+    sig = np.sqrt(np.maximum(np.diag(priors.cov_pred), 0.0))
+    half_x = float(np.clip(opts.search_sigmas * sig[0], opts.search_min_m, opts.search_max_m))
+    half_y = float(np.clip(opts.search_sigmas * sig[1], opts.search_min_m, opts.search_max_m))
+    half_t = float(np.clip(opts.search_sigmas * sig[2], opts.search_min_rad, opts.search_max_rad))
+    max_r = float(np.max(np.hypot(pts[:, 0], pts[:, 1]))) if n else 1.0
+    step_t = max(math.atan2(res, max(max_r, 1.0)), math.radians(0.05))
+    wall = priors.wall_heading_rad
+    centre_t = priors.predicted.theta_rad
+    if wall is not None and math.isfinite(priors.wall_sigma_rad):
+        # θ is narrow where the walls anchor it: the window covers the walls' heading and the
+        # prediction, no more than the prediction's own window.
+        d = wrap_angle(wall - centre_t)
+        if abs(d) <= half_t:
+            lo = min(0.0, d) - opts.search_sigmas * priors.wall_sigma_rad
+            hi = max(0.0, d) + opts.search_sigmas * priors.wall_sigma_rad
+            lo, hi = max(lo, -half_t), min(hi, half_t)
+            centre_t, half_t = centre_t + 0.5 * (lo + hi), 0.5 * (hi - lo)
+    n_t = math.ceil(half_t / step_t)
+    thetas: FloatArray = centre_t + step_t * np.arange(-n_t, n_t + 1, dtype=np.float64)
+    return thetas, math.ceil(half_y / res), math.ceil(half_x / res)
+
+
+def _brute_force_search(
+    grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
+) -> tuple[Pose2D, int]:
+    """`search` by scoring every lattice pose: the reference the branch and bound must match
+    (tests, `bench.search_speed`)."""
     costs = grid.residual_costs(opts.max_residual_sigmas)
     h, w = costs.shape
     if not h or not w:

@@ -1,0 +1,361 @@
+"""The correlative search's lattice optimum by branch and bound: the brute force's answer, exactly,
+for a fraction of its lookups.
+
+The lattice (`matcher.search` defines it) is every rotation θ_k, k < K, times every whole-cell
+translation (di, dj), |di| ≤ ny, |dj| ≤ nx, around the prediction. A pose's cost is
+
+    w · mean_i C[row_i(θ_k) + di, col_i(θ_k) + dj]  +  motion prior(dx, dy, dθ)  +  wall(θ_k)
+
+with C the submap's per-cell r² table (`LikelihoodGrid.residual_costs`; a cell off the grid costs
+what the grid's unknown border costs). The brute force scores all K·(2ny+1)·(2nx+1) poses.
+
+Branch and bound (Cartographer's `FastCorrelativeScanMatcher2D`, Olson 2009) instead scores
+*blocks* of poses with a lower bound of every cost in the block, and only opens a block whose
+bound is below the best pose found so far:
+
+- A block is 2^a consecutive rotations × 2^d × 2^d translations. Its children halve both
+  (eight of them), down to single poses, whose cost is computed exactly as the brute force does.
+- Scan term. Over the block's rotations point i moves at most |p_i|·δ from where the block's
+  middle rotation puts it (δ: half the block's angle), so its cell stays inside a rectangle; the
+  block's translations widen that rectangle by 2^d - 1 cells. The minimum of C over a square
+  that holds the rectangle bounds the point's cost anywhere in the block. The squares are read
+  from a min-pyramid: level m holds, per cell, the minimum of C over the 2^m × 2^m cells above
+  and right of it (anchored, as Cartographer's precomputation grids are), one lookup a point.
+- Motion prior: a lower bound of the quadratic over the block's box in (dx, dy, dθ), by interval
+  arithmetic term by term (exact when the prior's covariance is diagonal). Wall prior: the Huber
+  cost at the block's angle nearest the walls' heading (0 if the block spans it).
+- Order: level by level, every surviving block opened at once (numpy works in batches, not
+  one block at a time). Before each level, the single poses at the middle of the few best
+  blocks are scored exactly: the best of them is the bound to beat, and it tightens as the
+  blocks shrink. A block is dropped only when its bound exceeds the best cost (plus rounding
+  slack), so ties survive, and ties are broken as the brute force breaks them: lowest rotation
+  index, then row-major translation.
+
+The pyramid is per submap and cost table: it is built on first use after the submap changed and
+cached beside the grid (held weakly, keyed to the identity of the grid's cached cost table, which
+an insert replaces). It is built over the bounding box of the cells that do not cost the unknown
+value, padded by the largest block: outside that box every window holds only unknown cells.
+"""
+
+from __future__ import annotations
+
+import math
+import weakref
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import numpy.typing as npt
+
+from service.core.frontend.likelihood import F32Array, LikelihoodGrid
+from service.core.types import FloatArray
+
+IntArray = npt.NDArray[np.int64]
+Interval = tuple[npt.NDArray[np.floating[Any]], npt.NDArray[np.floating[Any]]]  # (lo, hi)
+
+# The largest pyramid level: windows of 2^6 = 64 cells (3.2 m at 5 cm). A point whose block
+# spans more is bounded by the table's global minimum.
+MAX_LEVEL = 6
+# Single poses scored before each level to tighten the bound to beat.
+_PROBES = 4
+# A block is pruned when its bound exceeds the best cost by more than this (relative): the
+# bound and the exact cost sum the same float32 values in different orders.
+_SLACK = 1e-9
+
+
+@dataclass(frozen=True, slots=True)
+class CostPyramid:
+    """Min-pooled cost tables over a crop of the grid, flattened: level m's table is
+    `flat[m·H·W : (m+1)·H·W]` (row-major, H × W), and `flat[-1]` is the table's global minimum.
+    Level m at crop cell (r, c) = min of the costs over rows r .. r+2^m-1, columns c .. c+2^m-1.
+    """
+
+    flat: F32Array
+    row0: int  # grid row of the crop's row 0
+    col0: int  # grid column of the crop's column 0
+    height: int
+    width: int
+    max_level: int
+
+    def lookup(self, level: IntArray, rows: IntArray, cols: IntArray) -> F32Array:
+        """Level `level`'s value anchored at grid cells (rows, cols); a level above the largest
+        gives the global minimum. Anchors off the crop are clamped onto it: there, and on the
+        crop's edge, every window holds only unknown cells."""
+        r = np.clip(rows - self.row0, 0, self.height - 1)
+        c = np.clip(cols - self.col0, 0, self.width - 1)
+        idx = (level * self.height + r) * self.width + c
+        idx = np.where(level > self.max_level, self.flat.shape[0] - 1, idx)
+        out: F32Array = self.flat[idx]
+        return out
+
+
+def build_pyramid(costs: F32Array, unknown: float, max_level: int = MAX_LEVEL) -> CostPyramid:
+    """The min-pyramid of a cost table whose border cells (and everything off it) cost
+    `unknown`."""
+    pad = 1 << max_level
+    differs = costs != np.float32(unknown)
+    rows_any, cols_any = np.flatnonzero(differs.any(axis=1)), np.flatnonzero(differs.any(axis=0))
+    if rows_any.size:
+        r0, r1 = int(rows_any[0]), int(rows_any[-1]) + 1
+        c0, c1 = int(cols_any[0]), int(cols_any[-1]) + 1
+    else:
+        r0 = r1 = c0 = c1 = 0  # all unknown: a crop of unknown cells only
+    height, width = r1 - r0 + 2 * pad, c1 - c0 + 2 * pad
+    flat = np.empty((max_level + 1) * height * width + 1, dtype=np.float32)
+    levels = flat[:-1].reshape(max_level + 1, height, width)
+    levels[0].fill(np.float32(unknown))
+    levels[0, pad : pad + r1 - r0, pad : pad + c1 - c0] = costs[r0:r1, c0:c1]
+    for m in range(max_level):
+        s = 1 << m
+        src, dst = levels[m], levels[m + 1]
+        # Rows then columns: the window doubles in each. Cells past the crop's end are unknown.
+        tmp = src.copy()
+        np.minimum(src[:-s], src[s:], out=tmp[:-s])
+        np.minimum(tmp[:, :-s], tmp[:, s:], out=dst[:, :-s])
+        np.minimum(tmp[:, -s:], np.float32(unknown), out=dst[:, -s:])
+        dst[-s:] = np.minimum(dst[-s:], np.float32(unknown))
+    flat[-1] = min(float(levels[0].min()), unknown)
+    return CostPyramid(flat, r0 - pad, c0 - pad, height, width, max_level)
+
+
+# Per grid: (the cost table the pyramid was built from, the pyramid). Weak keys: a submap that
+# is dropped takes its pyramid with it.
+_PYRAMIDS: weakref.WeakKeyDictionary[LikelihoodGrid, tuple[F32Array, CostPyramid]] = (
+    weakref.WeakKeyDictionary()
+)
+
+
+def pyramid_of(grid: LikelihoodGrid, costs: F32Array, unknown: float) -> CostPyramid:
+    """The grid's pyramid of `costs` (its current `residual_costs`), built on first use."""
+    cached = _PYRAMIDS.get(grid)
+    if cached is not None and cached[0] is costs:
+        return cached[1]
+    pyramid = build_pyramid(costs, unknown)
+    _PYRAMIDS[grid] = (costs, pyramid)
+    return pyramid
+
+
+@dataclass(frozen=True, slots=True)
+class Lattice:
+    """The search's poses and objective, as `matcher.search` defines them."""
+
+    thetas_rad: FloatArray  # (K,) rotations, ascending
+    half_rows: int  # ny: row offsets -ny .. ny (map y, cells)
+    half_cols: int  # nx: column offsets -nx .. nx (map x, cells)
+    predicted_xy_m: tuple[float, float]  # translation at offset (0, 0)
+    predicted_theta_rad: float
+    info_pred: FloatArray  # (3, 3) inverse covariance of the prediction
+    scan_weight: float
+    wall_heading_rad: float | None  # None: no wall prior
+    wall_sigma_rad: float
+    wall_huber: float
+
+
+def _wrap(theta_rad: FloatArray) -> FloatArray:
+    """`types.wrap_angle`, elementwise (same operations, so the same bits)."""
+    out: FloatArray = np.asarray((theta_rad + math.pi) % (2.0 * math.pi) - math.pi, np.float64)
+    return out
+
+
+def _huber(z: FloatArray, huber: float) -> FloatArray:
+    """The wall prior's cost at residuals z (σ), as `matcher._wall_cost_weight` computes it."""
+    a = np.abs(z)
+    out: FloatArray = np.where(a <= huber, z * z, 2.0 * huber * a - huber * huber)
+    return out
+
+
+class _Problem:
+    """One search: the points, the lattice, the table, and the two ways to score."""
+
+    def __init__(
+        self, grid: LikelihoodGrid, pyramid: CostPyramid, pts: FloatArray, lat: Lattice
+    ) -> None:
+        self.pyr = pyramid
+        self.lat = lat
+        self.px, self.py = pts[:, 0], pts[:, 1]
+        self.range_m = np.hypot(self.px, self.py)
+        self.res = grid.resolution_m
+        self.origin = grid.origin_m
+        self.cos, self.sin = np.cos(lat.thetas_rad), np.sin(lat.thetas_rad)
+        self.n_rot = lat.thetas_rad.shape[0]
+        self.n_rows, self.n_cols = 2 * lat.half_rows + 1, 2 * lat.half_cols + 1
+        self.has_wall = lat.wall_heading_rad is not None and math.isfinite(lat.wall_sigma_rad)
+
+    # ------------------------------------------------------------------ single poses
+    def exact(self, k: IntArray, a: IntArray, b: IntArray) -> FloatArray:
+        """The cost of poses (rotation k, row offset a - ny, column offset b - nx), with the
+        brute force's operations in the brute force's order: the same bits."""
+        lat, res = self.lat, self.res
+        c, s = self.cos[k][:, None], self.sin[k][:, None]
+        mx = c * self.px[None, :] - s * self.py[None, :] + lat.predicted_xy_m[0]
+        my = s * self.px[None, :] + c * self.py[None, :] + lat.predicted_xy_m[1]
+        di, dj = a - lat.half_rows, b - lat.half_cols
+        rows = np.rint((my - self.origin[1]) / res - 0.5).astype(np.int64) + di[:, None]
+        cols = np.rint((mx - self.origin[0]) / res - 0.5).astype(np.int64) + dj[:, None]
+        level0 = np.zeros_like(rows)
+        scan = lat.scan_weight * self.pyr.lookup(level0, rows, cols).mean(axis=1, dtype=np.float64)
+        info = lat.info_pred
+        dx, dy = dj * res, di * res
+        dt = _wrap(lat.thetas_rad[k] - lat.predicted_theta_rad)
+        prior = (
+            info[0, 0] * dx * dx
+            + info[1, 1] * dy * dy
+            + info[2, 2] * dt * dt
+            + 2.0 * info[0, 1] * dx * dy
+            + 2.0 * info[0, 2] * dx * dt
+            + 2.0 * info[1, 2] * dy * dt
+        )
+        total: FloatArray = scan + prior
+        if self.has_wall:
+            assert lat.wall_heading_rad is not None
+            z = _wrap(lat.thetas_rad[k] - lat.wall_heading_rad) / lat.wall_sigma_rad
+            total = total + _huber(z, lat.wall_huber)
+        return total
+
+    # ------------------------------------------------------------------ blocks
+    def bound(self, k0: IntArray, a0: IntArray, b0: IntArray, ka: int, d: int) -> FloatArray:
+        """A lower bound of the cost over each block: rotations k0 .. k0+2^ka-1, row offsets
+        a0 .. a0+2^d-1, column offsets b0 .. b0+2^d-1 (each clipped to the lattice)."""
+        lat, res = self.lat, self.res
+        k1 = np.minimum(k0 + (1 << ka), self.n_rot) - 1
+        a1 = np.minimum(a0 + (1 << d), self.n_rows) - 1
+        b1 = np.minimum(b0 + (1 << d), self.n_cols) - 1
+        t0, t1 = lat.thetas_rad[k0], lat.thetas_rad[k1]
+        mid, half = 0.5 * (t0 + t1), 0.5 * (t1 - t0)
+        c, s = np.cos(mid)[:, None], np.sin(mid)[:, None]
+        u = (c * self.px - s * self.py + lat.predicted_xy_m[0] - self.origin[0]) / res - 0.5
+        v = (s * self.px + c * self.py + lat.predicted_xy_m[1] - self.origin[1]) / res - 0.5
+        # Where a point can be over the block's rotations: within |p|·δ of the middle's place
+        # (plus slack for the brute force's own rounding of the same positions).
+        reach = self.range_m[None, :] * (half / res)[:, None] + 1e-6
+        lo_c = np.rint(u - reach).astype(np.int64)
+        lo_r = np.rint(v - reach).astype(np.int64)
+        span_c = np.rint(u + reach).astype(np.int64) - lo_c + (b1 - b0 + 1)[:, None]
+        span_r = np.rint(v + reach).astype(np.int64) - lo_r + (a1 - a0 + 1)[:, None]
+        side = np.maximum(span_r, span_c)
+        level = np.frexp(side - 1)[1]  # ceil(log2(side)): the smallest square that holds it
+        rows = lo_r + (a0 - lat.half_rows)[:, None]
+        cols = lo_c + (b0 - lat.half_cols)[:, None]
+        scan = lat.scan_weight * self.pyr.lookup(level, rows, cols).mean(axis=1, dtype=np.float64)
+        bound: FloatArray = (
+            scan + self._prior_bound((k0, k1), (a0, a1), (b0, b1)) + self._wall_bound(t0, t1)
+        )
+        return bound
+
+    def _prior_bound(
+        self,
+        k: tuple[IntArray, IntArray],
+        a: tuple[IntArray, IntArray],
+        b: tuple[IntArray, IntArray],
+    ) -> FloatArray:
+        """Lower bound of (dx, dy, dθ) Λ (dx, dy, dθ)ᵀ over each block's box, term by term."""
+        lat, res, info = self.lat, self.res, self.lat.info_pred
+        x = ((b[0] - lat.half_cols) * res, (b[1] - lat.half_cols) * res)
+        y = ((a[0] - lat.half_rows) * res, (a[1] - lat.half_rows) * res)
+        t = (
+            _wrap(lat.thetas_rad[k[0]] - lat.predicted_theta_rad),
+            _wrap(lat.thetas_rad[k[1]] - lat.predicted_theta_rad),
+        )
+
+        def square(lo_hi: Interval) -> FloatArray:
+            lo, hi = lo_hi
+            out: FloatArray = np.where((lo <= 0.0) & (hi >= 0.0), 0.0, np.minimum(lo * lo, hi * hi))
+            return out
+
+        def product(coef: float, p: Interval, q: Interval) -> FloatArray:
+            corners = [coef * pi * qj for pi in p for qj in q]
+            out: FloatArray = np.minimum(
+                np.minimum(corners[0], corners[1]), np.minimum(*corners[2:])
+            )
+            return out
+
+        total = (
+            info[0, 0] * square(x)
+            + info[1, 1] * square(y)
+            + info[2, 2] * square(t)
+            + product(2.0 * info[0, 1], x, y)
+            + product(2.0 * info[0, 2], x, t)
+            + product(2.0 * info[1, 2], y, t)
+        )
+        out: FloatArray = np.maximum(total, 0.0)  # Λ is positive semi-definite
+        return out
+
+    def _wall_bound(self, t0: FloatArray, t1: FloatArray) -> FloatArray | float:
+        """The wall cost at each block's angle nearest the walls' heading (0 if it spans it)."""
+        lat = self.lat
+        if not self.has_wall:
+            return 0.0
+        assert lat.wall_heading_rad is not None
+        z0 = _wrap(t0 - lat.wall_heading_rad) / lat.wall_sigma_rad
+        z1 = _wrap(t1 - lat.wall_heading_rad) / lat.wall_sigma_rad
+        nearest = np.where(z0 * z1 <= 0.0, 0.0, np.minimum(np.abs(z0), np.abs(z1)))
+        return _huber(nearest, lat.wall_huber)
+
+
+def lattice_search(
+    grid: LikelihoodGrid,
+    costs: F32Array,
+    unknown_cost: float,
+    pts: FloatArray,
+    lat: Lattice,
+) -> tuple[int, int, int, int]:
+    """The brute force's lowest-cost lattice pose: (rotation index k, row offset di, column
+    offset dj, poses and blocks scored). `costs` is `grid.residual_costs(...)`, whose border
+    and everything off the grid cost `unknown_cost`; `pts` holds at least one point."""
+    prob = _Problem(grid, pyramid_of(grid, costs, unknown_cost), pts, lat)
+    n_rot, n_rows, n_cols = prob.n_rot, prob.n_rows, prob.n_cols
+    depth_t = max(0, (max(n_rows, n_cols) - 1).bit_length())  # 2^depth_t ≥ the window
+    # Root rotation blocks of 2^(depth_t + 1): the farthest point then moves about as far as a
+    # root block translates.
+    depth_r = min(depth_t + 1, max(0, (n_rot - 1).bit_length()))
+    scored = 0
+    best_key = (math.inf, n_rot, n_rows, n_cols)  # (cost, k, a, b): the brute force's order
+
+    def consider(k: IntArray, a: IntArray, b: IntArray) -> None:
+        nonlocal best_key, scored
+        cost = prob.exact(k, a, b)
+        scored += int(cost.shape[0])
+        i = int(np.lexsort((b, a, k, cost))[0])
+        key = (float(cost[i]), int(k[i]), int(a[i]), int(b[i]))
+        best_key = min(best_key, key)
+
+    # The pose at the prediction: a first bound to beat.
+    k_pred = int(np.argmin(np.abs(_wrap(lat.thetas_rad - lat.predicted_theta_rad))))
+    one = np.ones(1, dtype=np.int64)
+    consider(k_pred * one, lat.half_rows * one, lat.half_cols * one)
+
+    k0 = np.arange(0, n_rot, 1 << depth_r, dtype=np.int64)
+    a0 = np.zeros_like(k0)
+    b0 = np.zeros_like(k0)
+    ka, d = depth_r, depth_t
+    while k0.shape[0]:
+        if ka == 0 and d == 0:
+            consider(k0, a0, b0)
+            break
+        bnd = prob.bound(k0, a0, b0, ka, d)
+        scored += int(bnd.shape[0])
+        keep = bnd <= best_key[0] + _SLACK * (1.0 + abs(best_key[0]))
+        k0, a0, b0, bnd = k0[keep], a0[keep], b0[keep], bnd[keep]
+        if not k0.shape[0]:
+            break
+        # The middle pose of the few best blocks, scored exactly: a tighter bound to beat.
+        top = np.argsort(bnd, kind="stable")[:_PROBES]
+        consider(
+            np.minimum(k0[top] + (1 << ka) // 2, n_rot - 1),
+            np.minimum(a0[top] + (1 << d) // 2, n_rows - 1),
+            np.minimum(b0[top] + (1 << d) // 2, n_cols - 1),
+        )
+        keep = bnd <= best_key[0] + _SLACK * (1.0 + abs(best_key[0]))
+        k0, a0, b0 = k0[keep], a0[keep], b0[keep]
+        # Every survivor's children: halve the rotations and each translation axis.
+        dk = [0, 1 << (ka - 1)] if ka else [0]
+        dt = [0, 1 << (d - 1)] if d else [0]
+        offsets = np.array([(i, j, m) for i in dk for j in dt for m in dt], dtype=np.int64)
+        k0 = (k0[:, None] + offsets[None, :, 0]).ravel()
+        a0 = (a0[:, None] + offsets[None, :, 1]).ravel()
+        b0 = (b0[:, None] + offsets[None, :, 2]).ravel()
+        inside = (k0 < n_rot) & (a0 < n_rows) & (b0 < n_cols)
+        k0, a0, b0 = k0[inside], a0[inside], b0[inside]
+        ka, d = max(ka - 1, 0), max(d - 1, 0)
+    _, k, a, b = best_key
+    return k, a - lat.half_rows, b - lat.half_cols, scored

@@ -1,0 +1,184 @@
+"""The branch-and-bound search (`service.core.frontend.search`) returns the brute force's lattice
+optimum: on random submaps, scans and priors, with and without the walls' prior, predictions off
+the grid's edge, and grids that hold nothing."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from sensor_agent.sim.world import LaserModel, World, simulate_scan
+from service.core.frontend.likelihood import LikelihoodGrid, residual_sq
+from service.core.frontend.matcher import MatchOptions, Priors, _brute_force_search, search
+from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd, surface_points
+from service.core.frontend.search import build_pyramid, pyramid_of
+from service.core.types import LaserScan, Pose2D, rotate_points
+
+pytestmark = pytest.mark.timeout(120)
+
+MODEL = LaserModel.utm30lx()
+PARAMS = MatcherParams()
+UNKNOWN = float(residual_sq(np.asarray(PARAMS.unknown_score), 3.0))
+
+
+def _world(rng: np.random.Generator) -> World:
+    """A 12 × 9 m room with random boxes and wall stubs inside."""
+    segs = [[0, 0, 12, 0], [12, 0, 12, 9], [12, 9, 0, 9], [0, 9, 0, 0]]
+    for _ in range(int(rng.integers(3, 8))):
+        x, y = rng.uniform(1.0, 11.0), rng.uniform(1.0, 8.0)
+        w, h = rng.uniform(0.2, 1.2), rng.uniform(0.2, 1.2)
+        segs += [[x, y, x + w, y], [x + w, y, x + w, y + h], [x + w, y + h, x, y + h]]
+        segs += [[x, y + h, x, y]]
+    return World(
+        seed=0,
+        size="test",
+        width_m=12.0,
+        height_m=9.0,
+        corridor_width_m=2.0,
+        segments_m=np.array(segs, dtype=np.float64),
+        loop_xy_m=np.zeros((0, 2)),
+        free_raster=np.ones((1, 1), dtype=bool),
+    )
+
+
+def _scan(world: World, pose: Pose2D, rng: np.random.Generator) -> LaserScan:
+    sample = simulate_scan(world, pose, MODEL, rng)
+    return LaserScan(
+        0, MODEL.angle_min_rad, MODEL.angle_increment_rad, sample.ranges_m,
+        MODEL.range_min_m, MODEL.range_max_m,
+    )  # fmt: skip
+
+
+def _grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
+    """A submap built as the front end builds one (surfaces), at known poses."""
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, PARAMS.unknown_score)
+    for scan, pose in scans:
+        pts = surface_points(
+            scan.points_xy_m(), PARAMS.surface_max_gap_m, PARAMS.surface_gap_per_range, 0.025
+        )
+        world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+        grid.insert(world, (pose.x_m, pose.y_m))
+    return grid
+
+
+def _points(scan: LaserScan) -> np.ndarray:
+    return ScanMatcherFrontEnd()._points(scan, scan.points_xy_m())
+
+
+def _random_cov(rng: np.random.Generator, sigma_m: float, sigma_rad: float) -> np.ndarray:
+    """A full covariance (correlated axes) of roughly these σ."""
+    a = rng.normal(size=(3, 3)) * 0.4 + np.eye(3)
+    s = np.diag([sigma_m, sigma_m, sigma_rad])
+    return s @ (a @ a.T) @ s / 2.0 + np.diag([1e-6, 1e-6, 1e-8])
+
+
+def _random_case(seed: int) -> tuple[LikelihoodGrid, np.ndarray, Priors, MatchOptions]:
+    rng = np.random.default_rng(seed)
+    world = _world(rng)
+    poses = [Pose2D(rng.uniform(3, 9), rng.uniform(2.5, 6.5), rng.uniform(-math.pi, math.pi))]
+    for _ in range(int(rng.integers(0, 3))):
+        p = poses[-1]
+        poses.append(Pose2D(p.x_m + rng.normal(0, 0.3), p.y_m + rng.normal(0, 0.3), p.theta_rad))
+    grid = _grid_of([(_scan(world, p, rng), p) for p in poses])
+    truth = Pose2D(
+        poses[0].x_m + rng.normal(0, 0.2),
+        poses[0].y_m + rng.normal(0, 0.2),
+        poses[0].theta_rad + rng.normal(0, 0.05),
+    )
+    pts = _points(_scan(world, truth, rng))
+    wide = bool(rng.integers(0, 2))  # the paper's spacing, or 40 Hz
+    cov = _random_cov(rng, 0.2, math.radians(8.0)) if wide else _random_cov(rng, 0.02, 0.02)
+    predicted = Pose2D(
+        truth.x_m + rng.normal(0, 1.5 * math.sqrt(cov[0, 0])),
+        truth.y_m + rng.normal(0, 1.5 * math.sqrt(cov[1, 1])),
+        truth.theta_rad + rng.normal(0, 1.5 * math.sqrt(cov[2, 2])),
+    )
+    wall, wall_sigma = None, math.inf
+    if rng.integers(0, 2):
+        wall = truth.theta_rad + rng.normal(0, math.radians(1.0))
+        wall_sigma = math.radians(rng.uniform(0.2, 3.0))
+    opts = MatchOptions(search_points=int(rng.choice([50, 200])))
+    return grid, pts, Priors(predicted, cov, wall, wall_sigma), opts
+
+
+@pytest.mark.parametrize("seed", range(60))
+def test_branch_and_bound_returns_the_brute_force_optimum(seed: int) -> None:
+    grid, pts, priors, opts = _random_case(seed)
+    expected, _ = _brute_force_search(grid, pts, priors, opts)
+    got, scored = search(grid, pts, priors, opts)
+    assert got == expected
+    assert scored > 0
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_same_optimum_with_a_huber_wall_prior_far_off(seed: int) -> None:
+    """A wall prior that disagrees with the prediction (its linear, Huber part in play)."""
+    grid, pts, priors, opts = _random_case(100 + seed)
+    off = Priors(priors.predicted, priors.cov_pred, priors.predicted.theta_rad + 0.05, 0.002)
+    assert search(grid, pts, off, opts)[0] == _brute_force_search(grid, pts, off, opts)[0]
+
+
+@pytest.mark.parametrize("dx_m", [-30.0, -6.2, 6.5, 40.0])
+def test_the_same_optimum_off_the_grid_edge(dx_m: float) -> None:
+    """A prediction past the submap's edge: part or all of the scan lands off the grid, where
+    cells cost what unknown space costs."""
+    grid, pts, priors, opts = _random_case(7)
+    w = grid.values.shape[1]
+    edge_x = grid.origin_m[0] + (w if dx_m > 0 else 0) * grid.resolution_m
+    p = Pose2D(edge_x + (dx_m if abs(dx_m) > 10 else 0.3 * dx_m / abs(dx_m)), 4.0, 0.2)
+    for wall in (None, 0.21):
+        pr = Priors(p, priors.cov_pred, wall, math.radians(1.0) if wall else math.inf)
+        assert search(grid, pts, pr, opts)[0] == _brute_force_search(grid, pts, pr, opts)[0]
+
+
+def test_an_empty_grid_returns_the_prediction() -> None:
+    _, pts, priors, opts = _random_case(3)
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, PARAMS.unknown_score)
+    assert search(grid, pts, priors, opts) == (priors.predicted, 0)
+    grid.insert(np.zeros((0, 2)), (0.0, 0.0))  # a scan with no points: still nothing
+    assert search(grid, pts, priors, opts) == (priors.predicted, 0)
+    assert search(grid, pts[:0], priors, opts) == (priors.predicted, 0)
+
+
+def test_a_grid_of_unknown_space_only_gives_the_priors_optimum() -> None:
+    """Every cell costs the same: the priors alone decide, as they do in the brute force."""
+    _, pts, priors, opts = _random_case(5)
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, PARAMS.unknown_score)
+    grid.values = np.zeros((64, 64), dtype=np.float32)
+    grid.known = np.zeros((16, 16), dtype=np.bool_)
+    grid.origin_m = (priors.predicted.x_m - 1.0, priors.predicted.y_m - 1.0)
+    for wall in (None, priors.predicted.theta_rad + 0.01):
+        pr = Priors(priors.predicted, priors.cov_pred, wall, 0.01 if wall else math.inf)
+        assert search(grid, pts, pr, opts)[0] == _brute_force_search(grid, pts, pr, opts)[0]
+
+
+def test_pyramid_levels_are_the_minimum_over_their_window() -> None:
+    """Level m at a cell = min of the costs over the 2^m × 2^m cells above and right of it,
+    with everything off the table costing the unknown value, wherever the anchor is."""
+    rng = np.random.default_rng(0)
+    costs = np.full((40, 50), UNKNOWN, dtype=np.float32)
+    costs[5:30, 8:45] = rng.uniform(0.0, 9.0, size=(25, 37)).astype(np.float32)
+    pyr = build_pyramid(costs, UNKNOWN, max_level=4)
+    big = np.full((300, 300), UNKNOWN, dtype=np.float32)
+    big[100:140, 100:150] = costs  # the table, off-table cells unknown, table at (100, 100)
+    rows = rng.integers(-90, 130, size=400)
+    cols = rng.integers(-90, 140, size=400)
+    levels = rng.integers(0, 6, size=400)
+    got = pyr.lookup(levels, rows, cols)
+    for r, c, m, g in zip(rows, cols, levels, got, strict=True):
+        if m > 4:
+            assert g == min(costs.min(), np.float32(UNKNOWN))
+        else:
+            s = 1 << m
+            assert g == big[100 + r : 100 + r + s, 100 + c : 100 + c + s].min()
+
+
+def test_the_pyramid_is_cached_until_the_submap_changes() -> None:
+    grid, _, _, _ = _random_case(1)
+    costs = grid.residual_costs(3.0)
+    first = pyramid_of(grid, costs, UNKNOWN)
+    assert pyramid_of(grid, grid.residual_costs(3.0), UNKNOWN) is first
+    grid.insert(np.array([[5.0, 5.0], [5.1, 5.0]]), (4.0, 4.0))
+    assert pyramid_of(grid, grid.residual_costs(3.0), UNKNOWN) is not first
