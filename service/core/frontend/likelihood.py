@@ -47,6 +47,11 @@ def residual_sq(field: npt.NDArray[np.floating], max_residual_sigmas: float) -> 
     return np.asarray(-2.0 * np.log(np.clip(field, floor, 1.0)))
 
 
+def off_surface_cost(max_residual_sigmas: float) -> float:
+    """What a point on no surface (seen empty, or never seen) costs in the cost table: the cap."""
+    return float(np.float32(residual_sq(np.asarray(0.0), max_residual_sigmas)))
+
+
 def _catmull_rom(t: FloatArray) -> tuple[list[FloatArray], list[FloatArray]]:
     """The four Catmull-Rom weights at fractions `t` of a cell, and their derivatives."""
     t2, t3 = t * t, t * t * t
@@ -212,7 +217,7 @@ class LikelihoodGrid:
             return self._costs[1]
         costs = residual_sq(self.values, max_residual_sigmas).astype(np.float32)
         if costs.size:
-            cap = np.float32(max_residual_sigmas**2)
+            cap = off_surface_cost(max_residual_sigmas)
             costs[[0, -1], :] = cap
             costs[:, [0, -1]] = cap
         self._costs = (max_residual_sigmas, costs)

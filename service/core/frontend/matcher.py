@@ -32,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from service.core.frontend.likelihood import LikelihoodGrid, residual_sq
+from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost, residual_sq
 from service.core.frontend.search import Lattice, lattice_search
 from service.core.types import FloatArray, Pose2D, rotate_points, wrap_angle
 
@@ -113,8 +113,8 @@ def search(
         wall_sigma_rad=priors.wall_sigma_rad,
         wall_huber=opts.wall_huber,
     )
-    unknown = float(residual_sq(np.asarray(grid.unknown_score), opts.max_residual_sigmas))
-    k, di, dj, scored = lattice_search(grid, costs, unknown, pts, lattice)
+    off_surface = off_surface_cost(opts.max_residual_sigmas)
+    k, di, dj, scored = lattice_search(grid, costs, off_surface, pts, lattice)
     res = grid.resolution_m
     pose = Pose2D(
         float(priors.predicted.x_m + dj * res),

@@ -7,7 +7,8 @@ translation (di, dj), |di| ≤ ny, |dj| ≤ nx, around the prediction. A pose's 
     w · mean_i C[row_i(θ_k) + di, col_i(θ_k) + dj]  +  motion prior(dx, dy, dθ)  +  wall(θ_k)
 
 with C the submap's per-cell r² table (`LikelihoodGrid.residual_costs`; a cell off the grid costs
-what the grid's unknown border costs). The brute force scores all K·(2ny+1)·(2nx+1) poses.
+what its border costs: the cap, as on no surface). The brute force scores all K·(2ny+1)·(2nx+1)
+poses.
 
 Branch and bound (Cartographer's `FastCorrelativeScanMatcher2D`, Olson 2009) instead scores
 *blocks* of poses with a lower bound of every cost in the block, and only opens a block whose
@@ -33,8 +34,8 @@ bound is below the best pose found so far:
 
 The pyramid is per submap and cost table: it is built on first use after the submap changed and
 cached beside the grid (held weakly, keyed to the identity of the grid's cached cost table, which
-an insert replaces). It is built over the bounding box of the cells that do not cost the unknown
-value, padded by the largest block: outside that box every window holds only unknown cells.
+an insert replaces). It is built over the bounding box of the cells that do not cost the cap
+value, padded by the largest block: outside that box every window holds only cells at the cap.
 """
 
 from __future__ import annotations
@@ -80,7 +81,7 @@ class CostPyramid:
     def lookup(self, level: IntArray, rows: IntArray, cols: IntArray) -> F32Array:
         """Level `level`'s value anchored at grid cells (rows, cols); a level above the largest
         gives the global minimum. Anchors off the crop are clamped onto it: there, and on the
-        crop's edge, every window holds only unknown cells."""
+        crop's edge, every window holds only cells at the cap."""
         r = np.clip(rows - self.row0, 0, self.height - 1)
         c = np.clip(cols - self.col0, 0, self.width - 1)
         idx = (level * self.height + r) * self.width + c
@@ -89,32 +90,32 @@ class CostPyramid:
         return out
 
 
-def build_pyramid(costs: F32Array, unknown: float, max_level: int = MAX_LEVEL) -> CostPyramid:
+def build_pyramid(costs: F32Array, off_surface: float, max_level: int = MAX_LEVEL) -> CostPyramid:
     """The min-pyramid of a cost table whose border cells (and everything off it) cost
-    `unknown`."""
+    `off_surface`."""
     pad = 1 << max_level
-    differs = costs != np.float32(unknown)
+    differs = costs != np.float32(off_surface)
     rows_any, cols_any = np.flatnonzero(differs.any(axis=1)), np.flatnonzero(differs.any(axis=0))
     if rows_any.size:
         r0, r1 = int(rows_any[0]), int(rows_any[-1]) + 1
         c0, c1 = int(cols_any[0]), int(cols_any[-1]) + 1
     else:
-        r0 = r1 = c0 = c1 = 0  # all unknown: a crop of unknown cells only
+        r0 = r1 = c0 = c1 = 0  # all at the cap: a crop of such cells only
     height, width = r1 - r0 + 2 * pad, c1 - c0 + 2 * pad
     flat = np.empty((max_level + 1) * height * width + 1, dtype=np.float32)
     levels = flat[:-1].reshape(max_level + 1, height, width)
-    levels[0].fill(np.float32(unknown))
+    levels[0].fill(np.float32(off_surface))
     levels[0, pad : pad + r1 - r0, pad : pad + c1 - c0] = costs[r0:r1, c0:c1]
     for m in range(max_level):
         s = 1 << m
         src, dst = levels[m], levels[m + 1]
-        # Rows then columns: the window doubles in each. Cells past the crop's end are unknown.
+        # Rows then columns: the window doubles in each. Cells past the crop's end cost the cap.
         tmp = src.copy()
         np.minimum(src[:-s], src[s:], out=tmp[:-s])
         np.minimum(tmp[:, :-s], tmp[:, s:], out=dst[:, :-s])
-        np.minimum(tmp[:, -s:], np.float32(unknown), out=dst[:, -s:])
-        dst[-s:] = np.minimum(dst[-s:], np.float32(unknown))
-    flat[-1] = min(float(levels[0].min()), unknown)
+        np.minimum(tmp[:, -s:], np.float32(off_surface), out=dst[:, -s:])
+        dst[-s:] = np.minimum(dst[-s:], np.float32(off_surface))
+    flat[-1] = min(float(levels[0].min()), off_surface)
     return CostPyramid(flat, r0 - pad, c0 - pad, height, width, max_level)
 
 
@@ -125,12 +126,12 @@ _PYRAMIDS: weakref.WeakKeyDictionary[LikelihoodGrid, tuple[F32Array, CostPyramid
 )
 
 
-def pyramid_of(grid: LikelihoodGrid, costs: F32Array, unknown: float) -> CostPyramid:
+def pyramid_of(grid: LikelihoodGrid, costs: F32Array, off_surface: float) -> CostPyramid:
     """The grid's pyramid of `costs` (its current `residual_costs`), built on first use."""
     cached = _PYRAMIDS.get(grid)
     if cached is not None and cached[0] is costs:
         return cached[1]
-    pyramid = build_pyramid(costs, unknown)
+    pyramid = build_pyramid(costs, off_surface)
     _PYRAMIDS[grid] = (costs, pyramid)
     return pyramid
 
@@ -295,14 +296,14 @@ class _Problem:
 def lattice_search(
     grid: LikelihoodGrid,
     costs: F32Array,
-    unknown_cost: float,
+    off_surface: float,
     pts: FloatArray,
     lat: Lattice,
 ) -> tuple[int, int, int, int]:
     """The brute force's lowest-cost lattice pose: (rotation index k, row offset di, column
     offset dj, poses and blocks scored). `costs` is `grid.residual_costs(...)`, whose border
-    and everything off the grid cost `unknown_cost`; `pts` holds at least one point."""
-    prob = _Problem(grid, pyramid_of(grid, costs, unknown_cost), pts, lat)
+    and everything off the grid cost `off_surface`; `pts` holds at least one point."""
+    prob = _Problem(grid, pyramid_of(grid, costs, off_surface), pts, lat)
     n_rot, n_rows, n_cols = prob.n_rot, prob.n_rows, prob.n_cols
     depth_t = max(0, (max(n_rows, n_cols) - 1).bit_length())  # 2^depth_t ≥ the window
     # Root rotation blocks of 2^(depth_t + 1): the farthest point then moves about as far as a

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from sensor_agent.sim.world import LaserModel, World, simulate_scan
-from service.core.frontend.likelihood import LikelihoodGrid, residual_sq
+from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
 from service.core.frontend.matcher import MatchOptions, Priors, _brute_force_search, search
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd, surface_points
 from service.core.frontend.search import build_pyramid, pyramid_of
@@ -20,7 +20,7 @@ pytestmark = pytest.mark.timeout(120)
 
 MODEL = LaserModel.utm30lx()
 PARAMS = MatcherParams()
-UNKNOWN = float(residual_sq(np.asarray(PARAMS.unknown_score), 3.0))
+CAP = off_surface_cost(3.0)
 
 
 def _world(rng: np.random.Generator) -> World:
@@ -53,13 +53,13 @@ def _scan(world: World, pose: Pose2D, rng: np.random.Generator) -> LaserScan:
 
 def _grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
     """A submap built as the front end builds one (surfaces), at known poses."""
-    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, PARAMS.unknown_score)
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
     for scan, pose in scans:
         pts = surface_points(
             scan.points_xy_m(), PARAMS.surface_max_gap_m, PARAMS.surface_gap_per_range, 0.025
         )
         world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
-        grid.insert(world, (pose.x_m, pose.y_m))
+        grid.insert(world)
     return grid
 
 
@@ -123,7 +123,7 @@ def test_the_same_optimum_with_a_huber_wall_prior_far_off(seed: int) -> None:
 @pytest.mark.parametrize("dx_m", [-30.0, -6.2, 6.5, 40.0])
 def test_the_same_optimum_off_the_grid_edge(dx_m: float) -> None:
     """A prediction past the submap's edge: part or all of the scan lands off the grid, where
-    cells cost what unknown space costs."""
+    cells cost what no surface costs."""
     grid, pts, priors, opts = _random_case(7)
     w = grid.values.shape[1]
     edge_x = grid.origin_m[0] + (w if dx_m > 0 else 0) * grid.resolution_m
@@ -135,17 +135,17 @@ def test_the_same_optimum_off_the_grid_edge(dx_m: float) -> None:
 
 def test_an_empty_grid_returns_the_prediction() -> None:
     _, pts, priors, opts = _random_case(3)
-    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, PARAMS.unknown_score)
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
     assert search(grid, pts, priors, opts) == (priors.predicted, 0)
-    grid.insert(np.zeros((0, 2)), (0.0, 0.0))  # a scan with no points: still nothing
+    grid.insert(np.zeros((0, 2)))  # a scan with no points: still nothing
     assert search(grid, pts, priors, opts) == (priors.predicted, 0)
     assert search(grid, pts[:0], priors, opts) == (priors.predicted, 0)
 
 
-def test_a_grid_of_unknown_space_only_gives_the_priors_optimum() -> None:
+def test_a_grid_without_surfaces_gives_the_priors_optimum() -> None:
     """Every cell costs the same: the priors alone decide, as they do in the brute force."""
     _, pts, priors, opts = _random_case(5)
-    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, PARAMS.unknown_score)
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
     grid.values = np.zeros((64, 64), dtype=np.float32)
     grid.known = np.zeros((16, 16), dtype=np.bool_)
     grid.origin_m = (priors.predicted.x_m - 1.0, priors.predicted.y_m - 1.0)
@@ -156,20 +156,20 @@ def test_a_grid_of_unknown_space_only_gives_the_priors_optimum() -> None:
 
 def test_pyramid_levels_are_the_minimum_over_their_window() -> None:
     """Level m at a cell = min of the costs over the 2^m × 2^m cells above and right of it,
-    with everything off the table costing the unknown value, wherever the anchor is."""
+    with everything off the table costing the cap, wherever the anchor is."""
     rng = np.random.default_rng(0)
-    costs = np.full((40, 50), UNKNOWN, dtype=np.float32)
+    costs = np.full((40, 50), CAP, dtype=np.float32)
     costs[5:30, 8:45] = rng.uniform(0.0, 9.0, size=(25, 37)).astype(np.float32)
-    pyr = build_pyramid(costs, UNKNOWN, max_level=4)
-    big = np.full((300, 300), UNKNOWN, dtype=np.float32)
-    big[100:140, 100:150] = costs  # the table, off-table cells unknown, table at (100, 100)
+    pyr = build_pyramid(costs, CAP, max_level=4)
+    big = np.full((300, 300), CAP, dtype=np.float32)
+    big[100:140, 100:150] = costs  # the table, off-table cells at the cap, table at (100, 100)
     rows = rng.integers(-90, 130, size=400)
     cols = rng.integers(-90, 140, size=400)
     levels = rng.integers(0, 6, size=400)
     got = pyr.lookup(levels, rows, cols)
     for r, c, m, g in zip(rows, cols, levels, got, strict=True):
         if m > 4:
-            assert g == min(costs.min(), np.float32(UNKNOWN))
+            assert g == min(costs.min(), np.float32(CAP))
         else:
             s = 1 << m
             assert g == big[100 + r : 100 + r + s, 100 + c : 100 + c + s].min()
@@ -178,7 +178,7 @@ def test_pyramid_levels_are_the_minimum_over_their_window() -> None:
 def test_the_pyramid_is_cached_until_the_submap_changes() -> None:
     grid, _, _, _ = _random_case(1)
     costs = grid.residual_costs(3.0)
-    first = pyramid_of(grid, costs, UNKNOWN)
-    assert pyramid_of(grid, grid.residual_costs(3.0), UNKNOWN) is first
-    grid.insert(np.array([[5.0, 5.0], [5.1, 5.0]]), (4.0, 4.0))
-    assert pyramid_of(grid, grid.residual_costs(3.0), UNKNOWN) is not first
+    first = pyramid_of(grid, costs, CAP)
+    assert pyramid_of(grid, grid.residual_costs(3.0), CAP) is first
+    grid.insert(np.array([[5.0, 5.0], [5.1, 5.0]]))
+    assert pyramid_of(grid, grid.residual_costs(3.0), CAP) is not first
