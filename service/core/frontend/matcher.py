@@ -166,28 +166,8 @@ def _brute_force_search(
     pts = points_xy_m
     if pts.shape[0] > opts.search_points:
         pts = pts[np.linspace(0, pts.shape[0] - 1, opts.search_points).astype(np.int64)]
-    n = pts.shape[0]
     res = grid.resolution_m
-    sig = np.sqrt(np.maximum(np.diag(priors.cov_pred), 0.0))
-    half_x = float(np.clip(opts.search_sigmas * sig[0], opts.search_min_m, opts.search_max_m))
-    half_y = float(np.clip(opts.search_sigmas * sig[1], opts.search_min_m, opts.search_max_m))
-    half_t = float(np.clip(opts.search_sigmas * sig[2], opts.search_min_rad, opts.search_max_rad))
-    max_r = float(np.max(np.hypot(pts[:, 0], pts[:, 1]))) if n else 1.0
-    step_t = max(math.atan2(res, max(max_r, 1.0)), math.radians(0.05))
-    wall = priors.wall_heading_rad
-    centre_t = priors.predicted.theta_rad
-    if wall is not None and math.isfinite(priors.wall_sigma_rad):
-        # θ is narrow where the walls anchor it: the window covers the walls' heading and the
-        # prediction, no more than the prediction's own window.
-        d = wrap_angle(wall - centre_t)
-        if abs(d) <= half_t:
-            lo = min(0.0, d) - opts.search_sigmas * priors.wall_sigma_rad
-            hi = max(0.0, d) + opts.search_sigmas * priors.wall_sigma_rad
-            lo, hi = max(lo, -half_t), min(hi, half_t)
-            centre_t, half_t = centre_t + 0.5 * (lo + hi), 0.5 * (hi - lo)
-    n_t = math.ceil(half_t / step_t)
-    thetas = centre_t + step_t * np.arange(-n_t, n_t + 1)
-    nx, ny = math.ceil(half_x / res), math.ceil(half_y / res)
+    thetas, ny, nx = _window(grid, pts, priors, opts)
     dj = np.arange(-nx, nx + 1)
     di = np.arange(-ny, ny + 1)
     info_pred = np.linalg.inv(priors.cov_pred)
