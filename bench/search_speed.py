@@ -29,7 +29,7 @@ import numpy as np
 
 from bench.profile_estimator import ACES_BAG
 from service.core.frontend import matcher
-from service.core.frontend.likelihood import LikelihoodGrid, residual_sq
+from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
 from service.core.frontend.matcher import MatchOptions, Priors
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
 from service.core.frontend.search import build_pyramid
@@ -106,11 +106,11 @@ def search_table(n_scans: int, repeat: int) -> None:
         print(f"{label:20s} {o:9.3f} {n:9.3f} {o / n:8.1f}× {np.median(old_n):10.0f} "
               f"{np.median(new_n):10.0f} {same:>5d}/{len(cases)}")  # fmt: skip
     builds = []
-    unknown = float(residual_sq(np.asarray(PARAMS.unknown_score), opts.max_residual_sigmas))
+    off_surface = off_surface_cost(opts.max_residual_sigmas)
     for grid, *_ in cases:
         costs = grid.residual_costs(opts.max_residual_sigmas)
         t0 = time.perf_counter_ns()
-        build_pyramid(costs, unknown)
+        build_pyramid(costs, off_surface)
         builds.append((time.perf_counter_ns() - t0) * 1e-6)
     shape = cases[-1][0].values.shape
     print(f"pyramid build (once per submap change): median {np.median(builds):.3f} ms "
