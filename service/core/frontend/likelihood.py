@@ -29,7 +29,6 @@ from service.core.types import FloatArray
 F32Array = npt.NDArray[np.float32]
 
 _GROW_CELLS = 128  # margin added on each side when a hit falls outside (6.4 m at 5 cm)
-_LAYERS = ("values", "density")  # the grids, grown together
 
 
 def _local_max(grid: F32Array, radius: int) -> F32Array:
@@ -150,8 +149,8 @@ class LikelihoodGrid:
             nx = math.ceil((x1 - x0) / res) + 2 * _GROW_CELLS
             ny = math.ceil((y1 - y0) / res) + 2 * _GROW_CELLS
             self.origin_m = (ox, oy)
-            for name in _LAYERS:
-                setattr(self, name, np.zeros((ny, nx), dtype=np.float32))
+            self.values = np.zeros((ny, nx), dtype=np.float32)
+            self.density = np.zeros((ny, nx), dtype=np.float32)
             return
 
         def extra(short_m: float) -> int:  # cells to add on a side short by `short_m`
@@ -160,11 +159,13 @@ class LikelihoodGrid:
         add_left, add_down = extra(ox - x0), extra(oy - y0)
         add_right, add_up = extra(x1 - (ox + w * res)), extra(y1 - (oy + h * res))
         shape = (h + add_down + add_up, w + add_left + add_right)
-        for name in _LAYERS:
+
+        def grow(layer: F32Array) -> F32Array:
             grown = np.zeros(shape, dtype=np.float32)
-            if getattr(self, name).shape == (h, w):
-                grown[add_down : add_down + h, add_left : add_left + w] = getattr(self, name)
-            setattr(self, name, grown)
+            grown[add_down : add_down + h, add_left : add_left + w] = layer
+            return grown
+
+        self.values, self.density = grow(self.values), grow(self.density)
         self.origin_m = (ox - add_left * res, oy - add_down * res)
 
     # ------------------------------------------------------------------ reading

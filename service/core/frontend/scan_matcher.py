@@ -135,6 +135,16 @@ def surface_points(
     return np.vstack((dense, points_xy_m[~touches]))
 
 
+def surface_in_map(points_xy_m: FloatArray, pose: Pose2D, params: MatcherParams) -> FloatArray:
+    """A keyframe's returns (laser frame) as the surface points its submaps take, in the map
+    frame at `pose`."""
+    pts = surface_points(
+        points_xy_m, params.surface_max_gap_m, params.surface_gap_per_range, params.resolution_m / 2
+    )
+    world: FloatArray = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+    return world
+
+
 def _covariance3(m: FloatArray) -> Covariance3:
     a = [float(v) for v in m.ravel()]
     return (a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
@@ -386,8 +396,7 @@ class ScanMatcherFrontEnd:
         pts = returns[
             np.hypot(returns[:, 0], returns[:, 1]) <= min(p.max_range_m, scan.range_max_m)
         ]
-        pts = surface_points(pts, p.surface_max_gap_m, p.surface_gap_per_range, p.resolution_m / 2)
-        world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+        world = surface_in_map(pts, pose, p)
         if not self._submaps or self._submaps[-1].inserted >= p.scans_per_submap:
             self._submaps.append(LikelihoodGrid(p.resolution_m, p.hit_sigma_m))
         for grid in self._submaps:

@@ -9,29 +9,15 @@ from typing import Any
 
 import numpy as np
 import pytest
+from scenes import MODEL, scan_of, world_of
 
-from sensor_agent.sim.world import LaserModel, World, simulate_scan
+from sensor_agent.sim.world import World, simulate_scan
 from service.core.backend.graph import GraphParams, PoseGraph
 from service.core.backend.loops import LoopParams, verify
 from service.core.maps.submaps import Submap, SubmapBuilder, SubmapParams
 from service.core.types import LaserScan, Pose2D
 
 pytestmark = pytest.mark.timeout(120)
-
-MODEL = LaserModel.utm30lx()
-
-
-def _world(segments: list[list[float]], width_m: float, height_m: float) -> World:
-    return World(
-        seed=0,
-        size="test",
-        width_m=width_m,
-        height_m=height_m,
-        corridor_width_m=2.0,
-        segments_m=np.array(segments, dtype=np.float64),
-        loop_xy_m=np.zeros((0, 2)),
-        free_raster=np.ones((1, 1), dtype=bool),
-    )
 
 
 def _room(x0: float) -> list[list[float]]:
@@ -49,18 +35,10 @@ def _room(x0: float) -> list[list[float]]:
     ]
 
 
-def _scan(world: World, pose: Pose2D, rng: np.random.Generator) -> LaserScan:
-    sample = simulate_scan(world, pose, MODEL, rng)
-    return LaserScan(
-        0, MODEL.angle_min_rad, MODEL.angle_increment_rad, sample.ranges_m,
-        MODEL.range_min_m, MODEL.range_max_m,
-    )  # fmt: skip
-
-
 def _submap(world: World, poses: list[Pose2D], rng: np.random.Generator) -> SubmapBuilder:
     builder = SubmapBuilder(SubmapParams(nodes_per_submap=len(poses)))
     for node, pose in enumerate(poses):
-        scan = _scan(world, pose, rng)
+        scan = scan_of(world, pose, rng)
         builder.add_node(node, pose, builder.node_points(scan.points_xy_m()), scan)
     assert builder.submaps[0].finished
     return builder
@@ -72,13 +50,13 @@ def _anchor_poses() -> list[Pose2D]:
 
 def test_loop_search_finds_a_known_offset() -> None:
     rng = np.random.default_rng(3)
-    world = _world(_room(0.0), 8.0, 6.0)
+    world = world_of(_room(0.0), 8.0, 6.0)
     builder = _submap(world, _anchor_poses(), rng)
     sub = builder.submaps[0]
     truth = Pose2D(6.4, 1.2, math.radians(91.0))  # the query, in the world = anchor frame here
     anchor = _anchor_poses()[0]
     true_rel = anchor.between(truth)
-    points = builder.node_points(_scan(world, truth, rng).points_xy_m())
+    points = builder.node_points(scan_of(world, truth, rng).points_xy_m())
     guess = Pose2D(true_rel.x_m + 0.35, true_rel.y_m - 0.25, true_rel.theta_rad + math.radians(0.3))
     result = verify(sub, builder.field_of(sub), 99, points, guess, np.eye(2) * 0.3**2, LoopParams())
     assert result.accepted, result
@@ -93,12 +71,12 @@ def test_a_match_looser_than_the_graphs_own_guess_is_refused() -> None:
     """The same good placement is a closure when the graph is less sure of the place than the
     match (σ 0.3 m against the match's few cm), and refused when the graph is surer."""
     rng = np.random.default_rng(3)
-    world = _world(_room(0.0), 8.0, 6.0)
+    world = world_of(_room(0.0), 8.0, 6.0)
     builder = _submap(world, _anchor_poses(), rng)
     sub = builder.submaps[0]
     truth = Pose2D(6.4, 1.2, math.radians(91.0))
     true_rel = _anchor_poses()[0].between(truth)
-    points = builder.node_points(_scan(world, truth, rng).points_xy_m())
+    points = builder.node_points(scan_of(world, truth, rng).points_xy_m())
     field = builder.field_of(sub)
     loose_graph = verify(sub, field, 99, points, true_rel, np.eye(2) * 0.3**2, LoopParams())
     assert loose_graph.accepted, loose_graph
@@ -117,11 +95,11 @@ def test_finished_submaps_hold_points_and_mask_and_build_their_field_on_demand()
     field is built for the loop search, cached for the few most recent, left out of
     checkpoints, and the same whether cached or rebuilt."""
     rng = np.random.default_rng(3)
-    world = _world(_room(0.0), 8.0, 6.0)
+    world = world_of(_room(0.0), 8.0, 6.0)
     poses = _anchor_poses()
     builder = SubmapBuilder(SubmapParams(nodes_per_submap=4, cached_fields=2))
     for node, pose in enumerate(poses):
-        scan = _scan(world, pose, rng)
+        scan = scan_of(world, pose, rng)
         builder.add_node(node, pose, builder.node_points(scan.points_xy_m()), scan)
     finished = [sub for sub in builder.submaps if sub.finished]
     assert len(finished) >= 3
@@ -145,13 +123,13 @@ def test_finished_submaps_hold_points_and_mask_and_build_their_field_on_demand()
 def test_a_twin_room_would_match_without_the_checks_and_is_refused_with_them() -> None:
     """Two identical rooms 12 m apart: a scan in the second matches the first perfectly."""
     rng = np.random.default_rng(5)
-    world = _world(_room(0.0) + _room(12.0), 20.0, 6.0)
+    world = world_of(_room(0.0) + _room(12.0), 20.0, 6.0)
     builder = _submap(world, _anchor_poses(), rng)
     sub = builder.submaps[0]
     anchor = _anchor_poses()[0]
     truth = Pose2D(12.0 + 3.1, 2.6, 0.05)  # in the second room
     true_rel = anchor.between(truth)
-    points = builder.node_points(_scan(world, truth, rng).points_xy_m())
+    points = builder.node_points(scan_of(world, truth, rng).points_xy_m())
     guess = Pose2D(true_rel.x_m - 0.2, true_rel.y_m + 0.1, true_rel.theta_rad)  # a good graph
     chain_cov = np.eye(2) * 0.15**2
 
@@ -176,7 +154,7 @@ def test_a_periodic_corridor_is_ambiguous() -> None:
     for k in range(4, 19):
         x = 2.0 * k
         walls += [[x, 2.4, x, 3.0], [x, 3.0, x + 0.9, 3.0], [x + 0.9, 3.0, x + 0.9, 2.4]]
-    world = _world(walls, 40.0, 3.0)
+    world = world_of(walls, 40.0, 3.0)
     rng = np.random.default_rng(7)
     poses = [Pose2D(16.0 + 0.3 * k, 1.2, 0.0) for k in range(10)]
     builder = SubmapBuilder(SubmapParams(nodes_per_submap=10))
@@ -431,7 +409,7 @@ def test_the_vectorised_submap_nearness_is_the_submap_by_submap_one(
 
 def test_a_submap_saved_with_its_field_by_an_older_version_still_loads() -> None:
     rng = np.random.default_rng(4)
-    world = _world(_room(0.0), 8.0, 6.0)
+    world = world_of(_room(0.0), 8.0, 6.0)
     builder = _submap(world, _anchor_poses(), rng)
     sub = builder.submaps[0]
     field = builder.field_of(sub)

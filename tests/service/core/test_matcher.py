@@ -10,71 +10,28 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from scenes import MODEL, grid_of, matched_points, scan_of, world_of
 
 from clients.wire import PoseFlag
-from sensor_agent.sim.world import LaserModel, World, simulate_scan
-from service.core.frontend.likelihood import LikelihoodGrid
 from service.core.frontend.matcher import MatchOptions, Priors, match
-from service.core.frontend.scan_matcher import (
-    STATE_VERSION,
-    MatcherParams,
-    ScanMatcherFrontEnd,
-    surface_points,
-)
+from service.core.frontend.scan_matcher import STATE_VERSION, ScanMatcherFrontEnd
 from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
-from service.core.types import LaserScan, Pose2D, rotate_points
+from service.core.types import LaserScan, Pose2D
 
 pytestmark = pytest.mark.timeout(120)
 
-MODEL = LaserModel.utm30lx()
-PARAMS = MatcherParams()
 
-
-def _world(segments: list[list[float]]) -> World:
-    return World(
-        seed=0,
-        size="test",
-        width_m=60.0,
-        height_m=60.0,
-        corridor_width_m=2.0,
-        segments_m=np.array(segments, dtype=np.float64),
-        loop_xy_m=np.zeros((0, 2)),
-        free_raster=np.ones((1, 1), dtype=bool),
-    )
-
-
-ROOM = _world(
+ROOM = world_of(
     [
         [0, 0, 8, 0], [8, 0, 8, 6], [8, 6, 0, 6], [0, 6, 0, 0],
         [5, 4, 5.6, 4], [5.6, 4, 5.6, 4.8], [5.6, 4.8, 5, 4.8], [5, 4.8, 5, 4],
         [2, 0, 2, 1.5],
-    ]
+    ],
+    60.0,
+    60.0,
 )  # fmt: skip
-CORRIDOR = _world([[-90, 0, 90, 0], [-90, 2, 90, 2]])  # 180 m long, 2 m wide: no end in range
-
-
-def _scan(world: World, pose: Pose2D, rng: np.random.Generator, stamp_ns: int = 0) -> LaserScan:
-    sample = simulate_scan(world, pose, MODEL, rng)
-    return LaserScan(
-        stamp_ns, MODEL.angle_min_rad, MODEL.angle_increment_rad, sample.ranges_m,
-        MODEL.range_min_m, MODEL.range_max_m,
-    )  # fmt: skip
-
-
-def _grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
-    """A submap built as the front end builds one (surfaces), at known poses."""
-    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
-    for scan, pose in scans:
-        pts = surface_points(
-            scan.points_xy_m(), PARAMS.surface_max_gap_m, PARAMS.surface_gap_per_range, 0.025
-        )
-        world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
-        grid.insert(world)
-    return grid
-
-
-def _points(scan: LaserScan) -> np.ndarray:
-    return ScanMatcherFrontEnd()._points(scan, scan.points_xy_m())
+# 180 m long, 2 m wide: no end in range
+CORRIDOR = world_of([[-90, 0, 90, 0], [-90, 2, 90, 2]], 60.0, 60.0)
 
 
 @pytest.mark.parametrize("shift", [(0.12, -0.07, 2.0), (-0.2, 0.15, -4.0), (0.03, 0.01, 0.3)])
@@ -85,12 +42,12 @@ def test_a_shifted_scan_is_recovered_against_its_own_submap(
     within 1 cm and 0.1° (search, then refinement)."""
     rng = np.random.default_rng(1)
     truth = Pose2D(3.0, 2.5, 0.3)
-    scan = _scan(ROOM, truth, rng)
-    grid = _grid_of([(scan, truth)])
+    scan = scan_of(ROOM, truth, rng)
+    grid = grid_of([(scan, truth)])
     dx, dy, dth_deg = shift
     predicted = Pose2D(truth.x_m + dx, truth.y_m + dy, truth.theta_rad + math.radians(dth_deg))
     cov = np.diag([0.15**2, 0.15**2, math.radians(3.0) ** 2])
-    result = match(grid, _points(scan), Priors(predicted, cov), MatchOptions())
+    result = match(grid, matched_points(scan), Priors(predicted, cov), MatchOptions())
     assert math.hypot(result.pose.x_m - truth.x_m, result.pose.y_m - truth.y_m) < 0.01
     assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.1
 
@@ -106,10 +63,10 @@ def test_a_plain_corridor_gives_a_covariance_long_along_it() -> None:
     as a submap does: one noisy scan alone draws wiggly walls.)"""
     rng = np.random.default_rng(2)
     poses = [Pose2D(-0.15 * k, 1.0 + 0.02 * (k % 3), 0.0) for k in range(10)]
-    grid = _grid_of([(_scan(CORRIDOR, pose, rng), pose) for pose in poses])
-    scan = _scan(CORRIDOR, Pose2D(0.3, 1.0, 0.0), rng)
+    grid = grid_of([(scan_of(CORRIDOR, pose, rng), pose) for pose in poses])
+    scan = scan_of(CORRIDOR, Pose2D(0.3, 1.0, 0.0), rng)
     cov = np.diag([0.2**2, 0.2**2, math.radians(2.0) ** 2])
-    result = match(grid, _points(scan), Priors(Pose2D(0.3, 1.0, 0.0), cov), MatchOptions())
+    result = match(grid, matched_points(scan), Priors(Pose2D(0.3, 1.0, 0.0), cov), MatchOptions())
     sigma_along, sigma_across = np.sqrt(np.diag(result.covariance)[:2])
     assert sigma_along >= 10.0 * sigma_across
     assert abs(result.pose.y_m - 1.0) < 0.01  # across: measured
@@ -119,19 +76,19 @@ def test_a_plain_corridor_gives_a_covariance_long_along_it() -> None:
 def test_a_wall_prior_two_degrees_off_is_outvoted_by_the_match() -> None:
     rng = np.random.default_rng(3)
     truth = Pose2D(3.0, 2.5, math.radians(5.0))
-    grid = _grid_of(
+    grid = grid_of(
         [
             (
-                _scan(ROOM, Pose2D(3.2, 2.4, math.radians(4.0)), rng),
+                scan_of(ROOM, Pose2D(3.2, 2.4, math.radians(4.0)), rng),
                 Pose2D(3.2, 2.4, math.radians(4.0)),
             )
         ]
     )
-    scan = _scan(ROOM, truth, rng)
+    scan = scan_of(ROOM, truth, rng)
     cov = np.diag([0.1**2, 0.1**2, math.radians(3.0) ** 2])
     wrong = truth.theta_rad + math.radians(2.0)
     sigma = math.radians(WallOptions().sigma_deg)
-    result = match(grid, _points(scan), Priors(truth, cov, wrong, sigma), MatchOptions())
+    result = match(grid, matched_points(scan), Priors(truth, cov, wrong, sigma), MatchOptions())
     # Outvoted: the heading stays within 15 % of the prior's error of the truth (obeyed, it
     # would be 2°; blended as two Gaussians of these σ, about 0.15°).
     assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.3
@@ -143,7 +100,7 @@ def _wing_scan(angle_deg: float, rng: np.random.Generator) -> np.ndarray:
     segs = []
     for x0, y0, x1, y1 in [(-4, -3, 4, -3), (4, -3, 4, 3), (4, 3, -4, 3), (-4, 3, -4, -3)]:
         segs.append([c * x0 - s * y0, s * x0 + c * y0, c * x1 - s * y1, s * x1 + c * y1])
-    scan = _scan(_world(segs), Pose2D(0.0, 0.0, 0.0), rng)
+    scan = scan_of(world_of(segs, 60.0, 60.0), Pose2D(0.0, 0.0, 0.0), rng)
     return scan.points_xy_m()
 
 
@@ -189,7 +146,7 @@ def test_the_front_end_follows_a_robot_through_a_room() -> None:
     start = Pose2D(1.5, 2.5, 0.2)
     for i in range(40):
         truth = Pose2D(1.5 + 0.1 * i, 2.5 + 0.02 * i, 0.2 + 0.01 * i)
-        est = fe.process(_scan(ROOM, truth, rng, stamp_ns=i * 100_000_000))
+        est = fe.process(scan_of(ROOM, truth, rng, stamp_ns=i * 100_000_000))
         rel_true = start.between(truth)
         assert math.hypot(est.x_m - rel_true.x_m, est.y_m - rel_true.y_m) < 0.03
         assert abs(math.degrees(est.theta_rad - rel_true.theta_rad)) < 0.3
@@ -218,10 +175,10 @@ def test_bad_scans_return_the_prediction_flagged_and_never_raise(kind: str, n: i
     good = [Pose2D(2.0 + 0.05 * i, 3.0, 0.0) for i in range(3)]
     last = None
     for i, pose in enumerate(good):
-        last = fe.process(_scan(ROOM, pose, rng, stamp_ns=(i + 1) * 100_000_000))
+        last = fe.process(scan_of(ROOM, pose, rng, stamp_ns=(i + 1) * 100_000_000))
     assert last is not None
     if kind == "backwards":
-        est = fe.process(_scan(ROOM, good[-1], rng, stamp_ns=100_000_000))
+        est = fe.process(scan_of(ROOM, good[-1], rng, stamp_ns=100_000_000))
         assert fe.stats.stamp_backwards == 1
         assert est.pose == last.pose  # not matched: time does not go back
     else:
@@ -232,7 +189,7 @@ def test_bad_scans_return_the_prediction_flagged_and_never_raise(kind: str, n: i
     assert est.flags & PoseFlag.DEGENERATE
     assert not est.is_keyframe
     # And it carries on: the next good scan is matched.
-    after = fe.process(_scan(ROOM, Pose2D(2.2, 3.0, 0.0), rng, stamp_ns=500_000_000))
+    after = fe.process(scan_of(ROOM, Pose2D(2.2, 3.0, 0.0), rng, stamp_ns=500_000_000))
     assert not after.flags & PoseFlag.DEGENERATE
 
 
@@ -241,7 +198,7 @@ def test_a_checkpoint_carries_on_exactly_and_refuses_another_version() -> None:
     as the one that never stopped. A state of another version is refused, not guessed."""
     rng = np.random.default_rng(8)
     scans = [
-        _scan(ROOM, Pose2D(1.5 + 0.1 * i, 2.5, 0.02 * i), rng, stamp_ns=(i + 1) * 100_000_000)
+        scan_of(ROOM, Pose2D(1.5 + 0.1 * i, 2.5, 0.02 * i), rng, stamp_ns=(i + 1) * 100_000_000)
         for i in range(30)
     ]
     fe = ScanMatcherFrontEnd()

@@ -8,18 +8,16 @@ import math
 
 import numpy as np
 import pytest
+from scenes import PARAMS, grid_of, matched_points, scan_of, world_of
 
-from sensor_agent.sim.world import LaserModel, World, simulate_scan
+from sensor_agent.sim.world import World
 from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
 from service.core.frontend.matcher import MatchOptions, Priors, _brute_force_search, search
-from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd, surface_points
 from service.core.frontend.search import build_pyramid, pyramid_of
-from service.core.types import LaserScan, Pose2D, rotate_points
+from service.core.types import Pose2D
 
 pytestmark = pytest.mark.timeout(120)
 
-MODEL = LaserModel.utm30lx()
-PARAMS = MatcherParams()
 CAP = off_surface_cost(3.0)
 
 
@@ -31,40 +29,7 @@ def _world(rng: np.random.Generator) -> World:
         w, h = rng.uniform(0.2, 1.2), rng.uniform(0.2, 1.2)
         segs += [[x, y, x + w, y], [x + w, y, x + w, y + h], [x + w, y + h, x, y + h]]
         segs += [[x, y + h, x, y]]
-    return World(
-        seed=0,
-        size="test",
-        width_m=12.0,
-        height_m=9.0,
-        corridor_width_m=2.0,
-        segments_m=np.array(segs, dtype=np.float64),
-        loop_xy_m=np.zeros((0, 2)),
-        free_raster=np.ones((1, 1), dtype=bool),
-    )
-
-
-def _scan(world: World, pose: Pose2D, rng: np.random.Generator) -> LaserScan:
-    sample = simulate_scan(world, pose, MODEL, rng)
-    return LaserScan(
-        0, MODEL.angle_min_rad, MODEL.angle_increment_rad, sample.ranges_m,
-        MODEL.range_min_m, MODEL.range_max_m,
-    )  # fmt: skip
-
-
-def _grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
-    """A submap built as the front end builds one (surfaces), at known poses."""
-    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
-    for scan, pose in scans:
-        pts = surface_points(
-            scan.points_xy_m(), PARAMS.surface_max_gap_m, PARAMS.surface_gap_per_range, 0.025
-        )
-        world = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
-        grid.insert(world)
-    return grid
-
-
-def _points(scan: LaserScan) -> np.ndarray:
-    return ScanMatcherFrontEnd()._points(scan, scan.points_xy_m())
+    return world_of(segs, 12.0, 9.0)
 
 
 def _random_cov(rng: np.random.Generator, sigma_m: float, sigma_rad: float) -> np.ndarray:
@@ -81,13 +46,13 @@ def _random_case(seed: int) -> tuple[LikelihoodGrid, np.ndarray, Priors, MatchOp
     for _ in range(int(rng.integers(0, 3))):
         p = poses[-1]
         poses.append(Pose2D(p.x_m + rng.normal(0, 0.3), p.y_m + rng.normal(0, 0.3), p.theta_rad))
-    grid = _grid_of([(_scan(world, p, rng), p) for p in poses])
+    grid = grid_of([(scan_of(world, p, rng), p) for p in poses])
     truth = Pose2D(
         poses[0].x_m + rng.normal(0, 0.2),
         poses[0].y_m + rng.normal(0, 0.2),
         poses[0].theta_rad + rng.normal(0, 0.05),
     )
-    pts = _points(_scan(world, truth, rng))
+    pts = matched_points(scan_of(world, truth, rng))
     wide = bool(rng.integers(0, 2))  # the paper's spacing, or 40 Hz
     cov = _random_cov(rng, 0.2, math.radians(8.0)) if wide else _random_cov(rng, 0.02, 0.02)
     predicted = Pose2D(

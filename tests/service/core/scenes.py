@@ -1,0 +1,50 @@
+"""Simulated rooms, scans and submaps for the core's tests (imported as `scenes`: pytest puts
+this folder on the path for the tests in it)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sensor_agent.sim.world import LaserModel, World, simulate_scan
+from service.core.frontend.likelihood import LikelihoodGrid
+from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd, surface_in_map
+from service.core.types import LaserScan, Pose2D
+
+MODEL = LaserModel.utm30lx()
+PARAMS = MatcherParams()
+
+
+def world_of(segments: list[list[float]], width_m: float, height_m: float) -> World:
+    """A world of these wall segments ([x0, y0, x1, y1], metres) and nothing else."""
+    return World(
+        seed=0,
+        size="test",
+        width_m=width_m,
+        height_m=height_m,
+        corridor_width_m=2.0,
+        segments_m=np.array(segments, dtype=np.float64),
+        loop_xy_m=np.zeros((0, 2)),
+        free_raster=np.ones((1, 1), dtype=bool),
+    )
+
+
+def scan_of(world: World, pose: Pose2D, rng: np.random.Generator, stamp_ns: int = 0) -> LaserScan:
+    """One UTM-30LX scan of `world` from `pose`."""
+    sample = simulate_scan(world, pose, MODEL, rng)
+    return LaserScan(
+        stamp_ns, MODEL.angle_min_rad, MODEL.angle_increment_rad, sample.ranges_m,
+        MODEL.range_min_m, MODEL.range_max_m,
+    )  # fmt: skip
+
+
+def grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
+    """A submap built as the front end builds one (surfaces), at known poses."""
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
+    for scan, pose in scans:
+        grid.insert(surface_in_map(scan.points_xy_m(), pose, PARAMS))
+    return grid
+
+
+def matched_points(scan: LaserScan) -> np.ndarray:
+    """The points of `scan` the front end matches (within reach, one per voxel)."""
+    return ScanMatcherFrontEnd()._points(scan, scan.points_xy_m())
