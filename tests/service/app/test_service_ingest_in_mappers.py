@@ -138,7 +138,7 @@ def test_a_killed_mapper_process_is_recovered_and_a_restart_serves_what_was_reco
     sid = str(svc1.create_session(robot.robot_id)["id"])
     with _client(svc1) as z:
         pub = z.declare_publisher(scan_key(robot.robot_id))
-        time.sleep(1.0)
+        wait_for(lambda: pub.matching_status.matching, 30, "a mapper process's scan subscription")
         for _ in range(30):
             pub.put(robot.next_payload())
             time.sleep(0.025)
