@@ -13,20 +13,20 @@ the estimate:
 4. Translation (§III): the scan, rotated into the map axes, is shifted by x′ (and y′) in steps of
    `translation_step_m` over ±`translation_window_m`; E(x′) = Σ_i h_ref(i)·h_cur(i, x′) with
    `translation_bin_m` bins, and the translation is the argmax, each axis on its own. The
-   reference is the previous reference scan (a keyframe): the paper's robot took a scan every
-   `keyframe_distance_m` or `keyframe_angle_deg` (§IV-A), which here decides when a scan
-   becomes the next reference. No motion prediction, no odometry (the paper uses none).
+   reference is the latest keyframe: the paper's robot took a scan every `keyframe_distance_m`
+   or `keyframe_angle_deg` (§IV-A), which here decides, from the match, when a scan becomes
+   the next reference. No motion prediction, no odometry (the paper uses none).
 
-Covariance (relative to the reference, map axes): per axis, the shifts whose correlation is
-above half way from a floor to its peak (the floor: the window's minimum, at most half the peak,
-so that a flat correlation along a corridor is as wide as the window), counted over the whole
-window (so a second, equally good peak widens it too), are read as a Gaussian's full width at
-half maximum:
-σ = (count · step / 2) / 1.1774, at least the bin's quantisation (bin / √12). The heading's σ
-is the same reading of hmax(θ) within ±45° of its peak, for this scan and the reference added in
-quadrature. An axis whose width is at least `ambiguous_width_m` is flagged AMBIGUOUS_X/Y and a
-heading σ above `no_wall_sigma_deg` NO_DOMINANT_WALL (flags only). Quality is 1 minus the
-largest share of a window that is above half maximum.
+Covariance (relative to the reference, map axes, diagonal): per axis, the shifts whose
+correlation is at least half way from a floor to the peak are counted over the whole window (a
+second, as high peak widens it too); the floor is the window's minimum, at most half the peak,
+so that a flat correlation along a corridor is as wide as the window. That width is read as a
+Gaussian's full width at half maximum: σ = count · step / 2.355, at least bin / √12. The
+heading's σ is the same reading of hmax(θ) within ±45° of its peak; its variance is this scan's
+plus the reference's. An axis at least `ambiguous_width_m` wide is flagged AMBIGUOUS_X/Y, a
+heading σ above `no_wall_sigma_deg` NO_DOMINANT_WALL (flags only). Quality is 1 minus the larger
+share of a window above half maximum. Bad scans (fewer than `min_points`) and stamps not after
+the previous one return the last pose flagged DEGENERATE, quality 0, unmatched.
 """
 
 from __future__ import annotations
