@@ -991,6 +991,8 @@ def _log_result(r: RunResult) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from service.core.slam import FRONT_ENDS  # (here: the module imports the core lazily)
+
     parser = argparse.ArgumentParser(
         prog="python -m bench.evaluate", description=__doc__.split("\n")[0]
     )
@@ -1005,7 +1007,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, action="append", help="synthetic building seed(s)")
     parser.add_argument(
         "--front-end",
-        choices=["manhattan", "matcher"],
+        choices=FRONT_ENDS,
         default="manhattan",
         help="the front end every run uses (default: %(default)s)",
     )

@@ -817,6 +817,7 @@ def _select(
 
 def main(argv: Sequence[str] | None = None) -> int:
     from sensor_agent.sim.families import FAMILIES, TEST_SEEDS, TUNING_SEEDS
+    from service.core.slam import FRONT_ENDS
 
     parser = argparse.ArgumentParser(
         prog="python -m bench.worlds",
@@ -883,7 +884,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     p_run.add_argument(
         "--front-end",
-        choices=["manhattan", "matcher"],
+        choices=FRONT_ENDS,
         default="manhattan",
         help="the CLI's --front-end (default: %(default)s)",
     )

@@ -13,6 +13,8 @@ from clients.keyexpr import DEFAULT_PREFIX
 
 log = logging.getLogger("mapping-service")
 
+FRONT_END_CHOICES = ("manhattan", "matcher", "paper")  # `service.core.slam.FRONT_ENDS`
+
 
 def _add_zenoh_args(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("zenoh")
@@ -95,10 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_map.add_argument(
         "--front-end",
-        choices=("manhattan", "matcher"),
+        # `service.core.slam.FRONT_ENDS`, spelt out so that the CLI starts without importing
+        # the core (tests/service/test_offline_cli.py checks that they are the same).
+        choices=FRONT_END_CHOICES,
         default="manhattan",
         help="manhattan: the projection-histogram cascade; matcher: one scan-to-submap match "
-        "with the walls' heading as a prior (being measured; docs/estimator.md) "
+        "with the walls' heading as a prior (being measured; docs/estimator.md); paper: the "
+        "IROS 2010 method as stated, no odometry (docs/paper-frontend.md) "
         "(default: %(default)s)",
     )
     p_map.add_argument(

@@ -29,6 +29,7 @@ from clients.wire import PoseFlag
 from service.core.backend.graph import GraphParams, PoseGraph, rotate_covariance
 from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
 from service.core.frontend.estimator import ManhattanEstimator
+from service.core.frontend.paper import PaperFrontEnd
 from service.core.frontend.params import EstimatorParams
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
 from service.core.maps.composed import ChunkedMap
@@ -299,8 +300,8 @@ class SlamBackend:
         return self.graph.estimate(node).compose(self.node_frontend[node].inverse())
 
 
-FrontEndName = Literal["manhattan", "matcher"]
-FRONT_ENDS: tuple[FrontEndName, ...] = ("manhattan", "matcher")
+FrontEndName = Literal["manhattan", "matcher", "paper"]
+FRONT_ENDS: tuple[FrontEndName, ...] = ("manhattan", "matcher", "paper")
 
 
 class FrontEnd(Protocol):
@@ -323,6 +324,8 @@ def make_frontend(
         return ScanMatcherFrontEnd(MatcherParams(use_odometry=use_odometry))
     if name == "manhattan":
         return ManhattanEstimator(estimator_params)
+    if name == "paper":
+        return PaperFrontEnd()  # the IROS 2010 method as stated: no odometry (`frontend.paper`)
     raise ValueError(f"unknown front end {name!r}; use one of {', '.join(FRONT_ENDS)}")
 
 

@@ -197,6 +197,44 @@ def test_map_with_the_matcher_front_end(recording: tuple[Path, list[int]], tmp_p
     assert float(np.max(error_m)) < 0.3, error_m.max()
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(180)
+def test_map_with_the_paper_front_end(recording: tuple[Path, list[int]], tmp_path: Path) -> None:
+    """`--front-end paper` maps the same recording through the same outputs, and its trajectory
+    follows the simulated truth. Its map's y axis is the first scan's major wall (the paper's
+    standard direction), so poses are compared relative to the first one."""
+    from sensor_agent.sim import world as sim
+
+    path, stamps = recording
+    out = tmp_path / "paper"
+    result = _run_cli(path, "--out", out, "--no-odom", "--no-progress", "--front-end", "paper")
+    assert result.returncode == 0, result.stderr
+    report = _check_outputs(out, stamps)
+    assert report["front_end"] == "paper"
+    truth = sim.generate_trajectory(sim.generate_building(3, "small"), 3, spacing_m=0.3).poses
+    rows = [line.split() for line in (out / "trajectory.tum").read_text().splitlines()]
+    est = np.array(
+        [[float(r[1]), float(r[2]), 2.0 * math.atan2(float(r[6]), float(r[7]))] for r in rows]
+    )
+
+    def relative(poses: np.ndarray) -> np.ndarray:
+        c, s = math.cos(poses[0, 2]), math.sin(poses[0, 2])
+        d = poses[:, :2] - poses[0, :2]
+        return np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
+
+    error_m = np.hypot(*(relative(est) - relative(truth[:N_SCANS])).T)
+    # 60 scans, 18 m at the paper's spacing, no odometry: within 0.3 m everywhere.
+    assert float(np.max(error_m)) < 0.3, error_m.max()
+
+
+def test_the_front_end_choices_are_the_cores() -> None:
+    """The CLI spells the front ends out (it starts without importing the core): the same."""
+    from service.cli import FRONT_END_CHOICES
+    from service.core.slam import FRONT_ENDS
+
+    assert FRONT_END_CHOICES == FRONT_ENDS
+
+
 def _assert_one_line_error(result: subprocess.CompletedProcess[str]) -> None:
     assert result.returncode == 2, result
     assert "Traceback" not in result.stderr
