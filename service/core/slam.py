@@ -10,8 +10,11 @@
                  │
                  ▼ optimised nodes ─▶ every scan corrected by its latest node's correction
 
-`SlamSession.process` never waits for anything but its own scan's front end and, on a keyframe,
-one bounded loop search. `finish` runs the final batch optimisation.
+`SlamSession` is one session's core, offline and live: front end, back end and map (which scans
+are drawn, at which poses). `mapping-service map` and the live service both run it; the live
+service runs its back half (`integrate`) in a background thread. `SlamSession.process` never
+waits for anything but its own scan's front end and, on a keyframe, one bounded loop search.
+`finish` runs the final batch optimisation.
 """
 
 from __future__ import annotations
@@ -20,8 +23,8 @@ import math
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol
+from dataclasses import dataclass, field, replace
+from typing import Any, Final, Literal, NamedTuple, Protocol
 
 import numpy as np
 
@@ -32,8 +35,13 @@ from service.core.frontend.estimator import ManhattanEstimator
 from service.core.frontend.params import EstimatorParams
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
 from service.core.maps.composed import ChunkedMap
+from service.core.maps.grid import GridImage, OccupancyGrid
 from service.core.maps.submaps import Submap, SubmapBuilder, SubmapParams
 from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate, frozen_array
+
+# The map rule: every keyframe, and at least every Nth scan so slow motion still paints free
+# space (0: keyframes only).
+DEFAULT_INTEGRATE_EVERY: Final = 5
 
 _NOT_ANCHORED = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
 
@@ -278,6 +286,11 @@ class SlamBackend:
             self.stats.solver_restarts = self.graph.isam_restarts
         return self.node_poses()
 
+    @property
+    def finished(self) -> bool:
+        """`finish` ran and no node came since."""
+        return self._optimised is not None
+
     def node_poses(self) -> list[Pose2D]:
         if self._optimised is not None:
             return list(self._optimised)
@@ -303,12 +316,16 @@ FrontEndName = Literal["manhattan", "matcher"]
 FRONT_ENDS: tuple[FrontEndName, ...] = ("manhattan", "matcher")
 
 
-class FrontEnd(Protocol):
-    """What the session needs of a front end (`ManhattanEstimator`, `ScanMatcherFrontEnd`)."""
+class Tracker(Protocol):
+    """What the session needs of a front end: a pose per scan."""
 
     def process(self, scan: LaserScan) -> PoseEstimate: ...
 
     def reset(self) -> None: ...
+
+
+class FrontEnd(Tracker, Protocol):
+    """A front end of ours (`ManhattanEstimator`, `ScanMatcherFrontEnd`)."""
 
     @property
     def wall_families_rad(self) -> tuple[float, ...]: ...
@@ -326,20 +343,76 @@ def make_frontend(
     raise ValueError(f"unknown front end {name!r}; use one of {', '.join(FRONT_ENDS)}")
 
 
+class Tracked(NamedTuple):
+    """One scan after the front end: what the session's back half (back end and map) takes."""
+
+    scan: LaserScan
+    estimate: PoseEstimate
+    node: bool  # becomes a graph node (a keyframe, with loop closure on)
+    drawn: bool  # drawn into the map (keyframes and every `integrate_every`-th scan, usable)
+
+
 class SlamSession:
-    """Front end plus back end for one robot's session (pure computation, no IO)."""
+    """One session's SLAM, offline and live alike: front end, back end and map (pure, no IO).
+
+    Per scan, `process` runs the two halves in turn:
+    - `track` (the front half): the front end's estimate, and the map rule: a scan is drawn
+      when it is usable (never `DEGENERATE`: its pose is only a prediction) and it is a
+      keyframe, the first scan, or `integrate_every` scans after the last one drawn;
+    - `integrate` (the back half): a keyframe becomes a graph node (loop search, iSAM2); a
+      drawn scan goes into the map, at once at its front-end pose without loop closure, or is
+      kept to be drawn at its corrected pose (its latest node's correction) with it.
+    The live service runs `track` on its per-scan path and `integrate` in a background thread
+    (`service.app.backend`): the same calls in the same order, so the same graph and map.
+    `map_image` draws the map at the current corrections; `finish` runs the final search and
+    batch optimisation and returns every scan's corrected pose.
+
+    `map_resolution_m` None: no map (the back end alone, as benchmarks use it);
+    `keep_trajectory` False: no per-scan record (the live service records its poses itself).
+    """
 
     def __init__(
         self,
         estimator_params: EstimatorParams | None = None,
         params: SlamParams | None = None,
-        frontend: FrontEnd | None = None,
+        frontend: Tracker | None = None,
+        *,
+        map_resolution_m: float | None = None,
+        integrate_every: int = DEFAULT_INTEGRATE_EVERY,
+        keep_trajectory: bool = True,
     ) -> None:
         self.params = params if params is not None else SlamParams()
-        self.frontend = frontend if frontend is not None else ManhattanEstimator(estimator_params)
+        self.frontend: Tracker = (
+            frontend if frontend is not None else ManhattanEstimator(estimator_params)
+        )
         self.backend = SlamBackend(self.params)
+        self.integrate_every = int(integrate_every)
+        self.map_resolution_m = map_resolution_m
+        self.keep_trajectory = keep_trajectory
+        # Front half: scans tracked, scans since the last one drawn.
+        self._tracked = 0
+        self._since_drawn = 0
+        # Back half.
         self._scan_node: list[int] = []  # per scan: its latest node (-1: none yet)
         self._scan_frontend: list[Pose2D] = []
+        # Drawn scans kept for drawing at corrected poses (loop closure): scan, pose, node.
+        self._drawn: list[tuple[LaserScan, Pose2D, int]] = []
+        self._grid = OccupancyGrid(map_resolution_m) if map_resolution_m is not None else None
+        self._grid_drawn = 0  # `_drawn` already in `_grid`
+        self._grid_corrections: list[Pose2D] = []  # the corrections `_grid` was drawn at
+        self.integrate_ns: list[int] = []  # time of each scan drawn (`keep_trajectory` only)
+
+    def __getstate__(self) -> dict[str, object]:
+        state = dict(self.__dict__)
+        if self.params.loop_closure and self._grid is not None:
+            # With loop closure the grid is drawn from `_drawn` (a cache): not in checkpoints.
+            state["_grid"] = OccupancyGrid(self._grid.resolution_m)
+            state["_grid_drawn"] = 0
+            state["_grid_corrections"] = []
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
 
     @property
     def graph(self) -> PoseGraph:
@@ -358,23 +431,72 @@ class SlamSession:
         return self.backend.node_frontend
 
     # ------------------------------------------------------------------ per scan
-    def process(self, scan: LaserScan) -> PoseEstimate:
+    def process(self, scan: LaserScan, seq: int = -1) -> PoseEstimate:
         """The front end's estimate for `scan`; a keyframe also becomes a graph node."""
-        estimate = self.frontend.process(scan)
-        self.observe(scan, estimate)
-        return estimate
+        tracked = self.track(scan)
+        self.integrate(tracked, seq)
+        return tracked.estimate
+
+    def track(self, scan: LaserScan) -> Tracked:
+        """The front half: the front end's estimate, and what the back half does with it."""
+        return self.select(scan, self.frontend.process(scan))
+
+    def select(self, scan: LaserScan, estimate: PoseEstimate) -> Tracked:
+        """The map rule and the node rule for an estimate (`track` without the front end)."""
+        self._tracked += 1
+        self._since_drawn += 1
+        usable = not estimate.flags & PoseFlag.DEGENERATE
+        due = 0 < self.integrate_every <= self._since_drawn
+        drawn = (
+            self._grid is not None
+            and usable
+            and (estimate.is_keyframe or due or self._tracked == 1)
+        )
+        if drawn:
+            self._since_drawn = 0
+            if self.params.loop_closure:
+                # Kept for good: read-only, so that checkpoints write its ranges once, whether
+                # it is still queued for the back half or kept to be drawn.
+                scan = replace(scan, ranges_m=frozen_array(scan.ranges_m))
+        node = self.params.loop_closure and estimate.is_keyframe
+        return Tracked(scan, estimate, node, drawn)
+
+    def integrate(self, tracked: Tracked, seq: int = -1) -> bool:
+        """The back half: the node, the map; True when a loop closure was accepted."""
+        estimate = tracked.estimate
+        closure = False
+        if tracked.node:
+            closure = self.backend.add_node(
+                tracked.scan, estimate.pose, estimate.covariance, int(estimate.flags), seq
+            )
+        node = self.backend.node_count - 1
+        if self.keep_trajectory:
+            self._scan_node.append(node)
+            self._scan_frontend.append(estimate.pose)
+        if tracked.drawn:
+            if self.params.loop_closure:
+                self._drawn.append((tracked.scan, estimate.pose, node))
+            else:
+                self._draw(tracked.scan, estimate.pose)
+                self._grid_drawn += 1
+        return closure
 
     def observe(self, scan: LaserScan, estimate: PoseEstimate) -> None:
-        """The back end's half of `process`, for callers that time the front end alone."""
-        if self.params.loop_closure and estimate.is_keyframe:
-            self.backend.add_node(scan, estimate.pose, estimate.covariance, int(estimate.flags))
-        self._scan_node.append(self.backend.node_count - 1)
-        self._scan_frontend.append(estimate.pose)
+        """The back half of `process` for an estimate made by the caller (timed apart)."""
+        self.integrate(self.select(scan, estimate))
+
+    def _draw(self, scan: LaserScan, pose: Pose2D) -> None:
+        assert self._grid is not None
+        t0 = time.perf_counter_ns()
+        self._grid.integrate(scan, pose)
+        if self.keep_trajectory:
+            self.integrate_ns.append(time.perf_counter_ns() - t0)
 
     # ------------------------------------------------------------------ results
     def finish(self) -> list[Pose2D]:
-        """Final batch optimisation; returns the corrected pose of every scan processed."""
-        if self.params.loop_closure and self.backend.node_count:
+        """Final search and batch optimisation; the corrected pose of every scan processed
+        (with `keep_trajectory`)."""
+        if self.params.loop_closure and self.backend.node_count and not self.backend.finished:
             self.backend.finish()
         return self.corrected_poses()
 
@@ -390,3 +512,47 @@ class SlamSession:
         for node, pose in zip(self._scan_node, self._scan_frontend, strict=True):
             out.append(pose if node < 0 else corrections[node].compose(pose))
         return out
+
+    def draw_map(self) -> OccupancyGrid:
+        """The map at the current corrections: with loop closure, every drawn scan at its
+        latest node's correction composed with its front-end pose, in the order tracked.
+
+        Only the scans drawn since the last call are added when no earlier node's correction
+        changed since; otherwise the grid is drawn again from the first scan (the same grid
+        either way: the same scans, poses and order).
+        """
+        if self._grid is None:
+            raise ValueError("this session keeps no map (map_resolution_m is None)")
+        if not self.params.loop_closure:
+            return self._grid
+        corrections = self.backend.corrections()
+        old = self._grid_corrections
+        if corrections[: len(old)] != old:
+            self._grid = OccupancyGrid(self._grid.resolution_m)
+            self._grid_drawn = 0
+            if self.keep_trajectory:
+                self.integrate_ns.clear()
+        for scan, pose, node in self._drawn[self._grid_drawn :]:
+            self._draw(scan, pose if node < 0 else corrections[node].compose(pose))
+        self._grid_drawn = len(self._drawn)
+        self._grid_corrections = corrections
+        return self._grid
+
+    def map_image(self) -> GridImage:
+        """The map at the current corrections, as an image."""
+        return self.draw_map().snapshot()
+
+    @property
+    def has_map(self) -> bool:
+        return self._grid is not None
+
+    @property
+    def map_bytes(self) -> int:
+        """The map's memory: its grid and, with loop closure, the scans kept to draw it."""
+        grid = self._grid.memory_bytes() if self._grid is not None else 0
+        return grid + sum(int(scan.ranges_m.nbytes) for scan, _, _ in self._drawn)
+
+    @property
+    def drawn_scans(self) -> int:
+        """Scans drawn into the map so far (with loop closure: kept to be drawn)."""
+        return len(self._drawn) if self.params.loop_closure else self._grid_drawn

@@ -206,10 +206,10 @@ def test_restart_from_checkpoint_replays_only_the_tail(
 def test_checkpoints_write_frozen_data_once(
     tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch, mappers: int
 ) -> None:
-    """With loop closure, what never changes again (finished submaps, frozen map chunks, the
-    nodes' points) goes to the epoch's array pack once: a checkpoint appends what froze since
-    the one before, not the whole session. A restart restores from the pack; a damaged pack
-    makes its checkpoints restore by replay instead, and nothing is lost."""
+    """With loop closure, what never changes again (finished submaps, the nodes' points, the
+    scans kept to draw the map) goes to the epoch's array pack once: a checkpoint appends what
+    froze since the one before, not the whole session. A restart restores from the pack; a
+    damaged pack makes its checkpoints restore by replay instead, and nothing is lost."""
     monkeypatch.setattr(MappingSession, "checkpoint_every_scans", 400)
     data = tmp_path / "data"
     live = runtime_factory(data, mapper_processes=mappers)
