@@ -37,7 +37,7 @@ from clients.wire import PoseFlag, Scan
 from service import mapio
 from service.bridge import scan_to_laser
 from service.core.frontend.params import EstimatorParams
-from service.core.maps.grid import OccupancyGrid
+from service.core.maps.grid import GridImage
 from service.core.slam import (
     DEFAULT_INTEGRATE_EVERY,
     FrontEndName,
@@ -68,7 +68,7 @@ class MapRun:
     estimates: list[PoseEstimate] = field(default_factory=list)
     estimator_ns: list[int] = field(default_factory=list)  # time of `process` per scan
     integrate_ns: list[int] = field(default_factory=list)  # time of `integrate` per call
-    grid: OccupancyGrid | None = None
+    image: GridImage | None = None  # the map, at the finished poses
     wall_s: float = 0.0
     beam_counts: set[int] = field(default_factory=set)
     with_odometry: int = 0  # scans that carried odometry into the estimator
@@ -106,12 +106,13 @@ def map_scans(
     slam_params: SlamParams | None = None,
     front_end: FrontEndName = "manhattan",
 ) -> MapRun:
-    """Estimate a pose for every scan and build the occupancy grid.
+    """Estimate a pose for every scan and build the occupancy map (`SlamSession`).
 
-    The grid integrates keyframes and every `integrate_every`-th scan (0: keyframes only);
-    degenerate poses are never integrated (their pose is only a prediction). With
-    `loop_closure`, the back end closes loops over the keyframes and the grid is drawn at the
-    optimised poses once the run is over.
+    The map draws keyframes and every `integrate_every`-th scan (0: keyframes only); degenerate
+    poses are never drawn (their pose is only a prediction). Without loop closure it is one
+    grid at the front-end poses. With `loop_closure`, the back end closes loops over the
+    keyframes; each drawn scan goes, at its front-end pose, into the map chunk of its stretch
+    of travel, and the map is the chunks composed at their anchor nodes' finished poses.
     """
     if params is None:
         params = EstimatorParams(use_odometry=use_odometry)
@@ -161,7 +162,7 @@ def map_scans(
     if slam_params.loop_closure:
         run.optimised = slam.finish()
         run.loops = slam.stats
-    run.grid = slam.draw_map()
+    run.image = slam.map_image()
     run.integrate_ns = slam.integrate_ns
     run.backend_s = slam.stats.total_s
     run.wall_families_deg = [round(math.degrees(a), 2) for a in frontend.wall_families_rad]
@@ -260,8 +261,8 @@ def build_report(
     }
     if input_info is not None:
         report["input"] = input_info
-    if run.grid is not None:
-        image = run.grid.snapshot()
+    if run.image is not None:
+        image = run.image
         res_m = float(image.resolution_m)
         report["map"] = {
             "resolution_m": res_m,
@@ -287,9 +288,9 @@ def write_outputs(
     """Write trajectory.tum, trajectory_covariance.csv, map.png, map.pgm, map.yaml and
     report.json; return the report."""
     out = Path(out_dir)
-    if run.grid is None:
+    if run.image is None:
         raise OfflineError("the run has no map")
-    image = run.grid.snapshot()
+    image = run.image
     report = build_report(run, input_info=input_info, params=params)
     try:
         out.mkdir(parents=True, exist_ok=True)

@@ -13,9 +13,9 @@ computed on demand: after each item the thread swaps in
   pose onto the graph (the published pose);
 - a `GraphSnapshot` (nodes, closures, counters), at most every `VIEW_PERIOD_S` and at once
   after a closure;
-- the map drawn at the current corrections (`SlamSession.map_image`: only the new scans when
-  no correction changed, else every drawn scan again), at most every `RENDER_PERIOD_S` and at
-  most `RENDER_SHARE` of the thread's time.
+- the map at the current corrections (`SlamSession.map_image`: the frozen map chunks composed
+  at their anchors' corrections, a cost that grows with the chunks, not the scans), at most
+  every `RENDER_PERIOD_S` and at most `RENDER_SHARE` of the thread's time.
 `finish` (a stopped session) queues the core's final search and batch optimisation.
 Reads take references under a lock held for microseconds, never the lock of the work.
 
@@ -47,8 +47,8 @@ log = logging.getLogger(__name__)
 
 VIEW_PERIOD_S: Final = 0.5  # graph snapshots, at most this often (and after every closure)
 RENDER_PERIOD_S: Final = 1.0  # the map, at most this often
-# ... and at most this share of the thread's time: a full redraw (after a correction) ray-casts
-# every drawn scan again, which grows with the session.
+# ... and at most this share of the thread's time: composing every chunk grows with the area
+# travelled (a few ms on a 91 m loop).
 RENDER_SHARE: Final = 0.25
 RECENT_REJECTED: Final = 100  # refused searches shown in a snapshot
 # The back end's thread runs this much nicer than the pose path (Linux, where a thread has its

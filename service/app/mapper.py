@@ -79,8 +79,9 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 # LocalMapper.state(): 1 = (estimator, grid), 2 = {estimator, grid, back end}, 3 = {the session
-# core (`SlamSession`), the back-half items queued}. Only 3 is read: 1 and 2 drew another map.
-STATE_VERSION: Final = 3
+# core (`SlamSession`) with every drawn scan kept, the back-half items queued}, 4 = the same with
+# the map as chunks (`maps.composed`). Only 4 is read: 1 to 3 hold the map another way.
+STATE_VERSION: Final = 4
 
 
 EstimatorFactory = Callable[[bool], Tracker]  # use_odometry -> front end
@@ -341,7 +342,7 @@ class LocalMapper:
 
     def state(self, pack_path: str | None = None) -> bytes:
         """The core and the back-half items still queued, as data (arrays plus JSON,
-        compressed): no code, see statecodec. Version 3: `{"version", "session", "queued"}`."""
+        compressed): no code, see statecodec. Version 4: `{"version", "session", "queued"}`."""
         allowed = self._allowed_modules()
         pack = self._pack(pack_path)
 
@@ -363,8 +364,8 @@ class LocalMapper:
         )
         if version != STATE_VERSION:
             raise statecodec.StateCodecError(
-                f"mapper state version {version} is not {STATE_VERSION} (versions 1 and 2 "
-                "drew the map another way: the recording is replayed instead)"
+                f"mapper state version {version} is not {STATE_VERSION} (versions 1 to 3 "
+                "hold the map another way: the recording is replayed instead)"
             )
         session = tree["session"]
         if not isinstance(session, SlamSession):

@@ -9,12 +9,13 @@
             pose graph (gtsam iSAM2) ◀────────────────┘
                  │
                  ▼ optimised nodes ─▶ every scan corrected by its latest node's correction
+                                    └──▶ map: chunks of drawn scans, each moved by its anchor's
 
 `SlamSession` is one session's core, offline and live: front end, back end and map (which scans
-are drawn, at which poses). `mapping-service map` and the live service both run it; the live
-service runs its back half (`integrate`) in a background thread. `SlamSession.process` never
-waits for anything but its own scan's front end and, on a keyframe, one bounded loop search.
-`finish` runs the final batch optimisation.
+are drawn, into which chunk: `maps.composed`). `mapping-service map` and the live service both
+run it; the live service runs its back half (`integrate`) in a background thread.
+`SlamSession.process` never waits for anything but its own scan's front end and, on a keyframe,
+one bounded loop search. `finish` runs the final batch optimisation.
 """
 
 from __future__ import annotations
@@ -23,14 +24,14 @@ import math
 import time
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
-from typing import Any, Final, Literal, NamedTuple, Protocol
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Final, Literal, NamedTuple, Protocol
 
 import numpy as np
 
 from clients.wire import PoseFlag
-from service.core.backend.graph import GraphParams, PoseGraph, rotate_covariance
 from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
+from service.core.backend.params import GraphParams, rotate_covariance
 from service.core.frontend.estimator import ManhattanEstimator
 from service.core.frontend.params import EstimatorParams
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
@@ -38,6 +39,9 @@ from service.core.maps.composed import ChunkedMap
 from service.core.maps.grid import GridImage, OccupancyGrid
 from service.core.maps.submaps import Submap, SubmapBuilder, SubmapParams
 from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate, frozen_array
+
+if TYPE_CHECKING:
+    from service.core.backend.graph import PoseGraph
 
 # The map rule: every keyframe, and at least every Nth scan so slow motion still paints free
 # space (0: keyframes only).
@@ -109,13 +113,12 @@ class SlamBackend:
 
     `SlamSession` drives it from the same thread as the front end (offline); the live service
     drives it from a background thread (`service.app.backend`), fed with the front end's
-    keyframes. With `map_resolution_m`, every node's scan also goes into a map chunk
-    (`maps.composed`), so that the map can be drawn at the optimised poses.
+    keyframes. The map is the session's (`SlamSession`), not the back end's.
     """
 
-    def __init__(self, params: SlamParams | None = None, map_resolution_m: float | None = None):
+    def __init__(self, params: SlamParams | None = None):
         self.params = params if params is not None else SlamParams()
-        self.graph = PoseGraph(self.params.graph)
+        self._graph: PoseGraph | None = None  # made on first use (`graph`)
         self.submaps = SubmapBuilder(self.params.submaps)
         self.stats = LoopStats()
         self.node_frontend: list[Pose2D] = []  # each node's front-end pose
@@ -124,7 +127,6 @@ class SlamBackend:
         self._chain_xy: list[FloatArray] = []  # prefix sums of sequential xy covariances (map)
         self._last_closure_node = -1
         self._optimised: list[Pose2D] | None = None
-        self.chunks = ChunkedMap(map_resolution_m) if map_resolution_m is not None else None
         self._near = _SubmapNodeIndex()
 
     def __getstate__(self) -> dict[str, object]:
@@ -135,6 +137,16 @@ class SlamBackend:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self._near = _SubmapNodeIndex()
+
+    @property
+    def graph(self) -> PoseGraph:
+        """The pose graph, made at the first node: gtsam is imported then, so a session
+        without loop closure (no node ever) never imports it."""
+        if self._graph is None:
+            from service.core.backend.graph import PoseGraph  # noqa: PLC0415  # gtsam
+
+            self._graph = PoseGraph(self.params.graph)
+        return self._graph
 
     @property
     def node_count(self) -> int:
@@ -178,8 +190,6 @@ class SlamBackend:
         self.node_points.append(kept)
         self.node_seq.append(seq)
         self.submaps.add_node(node, pose, kept, scan)
-        if self.chunks is not None:
-            self.chunks.add_node(node, pose, scan)
         if node % self.params.update_every_nodes == 0:
             t1 = time.perf_counter()
             self.graph.update()
@@ -360,12 +370,13 @@ class SlamSession:
       when it is usable (never `DEGENERATE`: its pose is only a prediction) and it is a
       keyframe, the first scan, or `integrate_every` scans after the last one drawn;
     - `integrate` (the back half): a keyframe becomes a graph node (loop search, iSAM2); a
-      drawn scan goes into the map, at once at its front-end pose without loop closure, or is
-      kept to be drawn at its corrected pose (its latest node's correction) with it.
+      drawn scan is ray-cast once at its front-end pose: with loop closure into the map chunk
+      of its latest node's stretch of travel (`maps.composed.ChunkedMap`, frozen once the next
+      stretch begins), without it into the one grid. Nothing per scan is kept.
     The live service runs `track` on its per-scan path and `integrate` in a background thread
     (`service.app.backend`): the same calls in the same order, so the same graph and map.
-    `map_image` draws the map at the current corrections; `finish` runs the final search and
-    batch optimisation and returns every scan's corrected pose.
+    `map_image` composes the chunks at their anchors' current corrections; `finish` runs the
+    final search and batch optimisation and returns every scan's corrected pose.
 
     `map_resolution_m` None: no map (the back end alone, as benchmarks use it);
     `keep_trajectory` False: no per-scan record (the live service records its poses itself).
@@ -396,23 +407,16 @@ class SlamSession:
         self._scan_node: list[int] = []  # per scan: its latest node (-1: none yet)
         self._scan_frontend: list[Pose2D] = []
         # Drawn scans kept for drawing at corrected poses (loop closure): scan, pose, node.
-        self._drawn: list[tuple[LaserScan, Pose2D, int]] = []
-        self._grid = OccupancyGrid(map_resolution_m) if map_resolution_m is not None else None
-        self._grid_drawn = 0  # `_drawn` already in `_grid`
-        self._grid_corrections: list[Pose2D] = []  # the corrections `_grid` was drawn at
+        # The map: with loop closure, chunks moved by their anchors' corrections; without,
+        # one grid at the front-end poses (no correction ever moves it).
+        self._grid: OccupancyGrid | None = None
+        self._chunks: ChunkedMap | None = None
+        if map_resolution_m is not None:
+            if self.params.loop_closure:
+                self._chunks = ChunkedMap(map_resolution_m)
+            else:
+                self._grid = OccupancyGrid(map_resolution_m)
         self.integrate_ns: list[int] = []  # time of each scan drawn (`keep_trajectory` only)
-
-    def __getstate__(self) -> dict[str, object]:
-        state = dict(self.__dict__)
-        if self.params.loop_closure and self._grid is not None:
-            # With loop closure the grid is drawn from `_drawn` (a cache): not in checkpoints.
-            state["_grid"] = OccupancyGrid(self._grid.resolution_m)
-            state["_grid_drawn"] = 0
-            state["_grid_corrections"] = []
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        self.__dict__.update(state)
 
     @property
     def graph(self) -> PoseGraph:
@@ -447,17 +451,9 @@ class SlamSession:
         self._since_drawn += 1
         usable = not estimate.flags & PoseFlag.DEGENERATE
         due = 0 < self.integrate_every <= self._since_drawn
-        drawn = (
-            self._grid is not None
-            and usable
-            and (estimate.is_keyframe or due or self._tracked == 1)
-        )
+        drawn = self.has_map and usable and (estimate.is_keyframe or due or self._tracked == 1)
         if drawn:
             self._since_drawn = 0
-            if self.params.loop_closure:
-                # Kept for good: read-only, so that checkpoints write its ranges once, whether
-                # it is still queued for the back half or kept to be drawn.
-                scan = replace(scan, ranges_m=frozen_array(scan.ranges_m))
         node = self.params.loop_closure and estimate.is_keyframe
         return Tracked(scan, estimate, node, drawn)
 
@@ -474,23 +470,19 @@ class SlamSession:
             self._scan_node.append(node)
             self._scan_frontend.append(estimate.pose)
         if tracked.drawn:
-            if self.params.loop_closure:
-                self._drawn.append((tracked.scan, estimate.pose, node))
+            t0 = time.perf_counter_ns()
+            if self._chunks is not None:
+                self._chunks.draw(tracked.scan, estimate.pose, node)
             else:
-                self._draw(tracked.scan, estimate.pose)
-                self._grid_drawn += 1
+                assert self._grid is not None
+                self._grid.integrate(tracked.scan, estimate.pose)
+            if self.keep_trajectory:
+                self.integrate_ns.append(time.perf_counter_ns() - t0)
         return closure
 
     def observe(self, scan: LaserScan, estimate: PoseEstimate) -> None:
         """The back half of `process` for an estimate made by the caller (timed apart)."""
         self.integrate(self.select(scan, estimate))
-
-    def _draw(self, scan: LaserScan, pose: Pose2D) -> None:
-        assert self._grid is not None
-        t0 = time.perf_counter_ns()
-        self._grid.integrate(scan, pose)
-        if self.keep_trajectory:
-            self.integrate_ns.append(time.perf_counter_ns() - t0)
 
     # ------------------------------------------------------------------ results
     def finish(self) -> list[Pose2D]:
@@ -513,46 +505,23 @@ class SlamSession:
             out.append(pose if node < 0 else corrections[node].compose(pose))
         return out
 
-    def draw_map(self) -> OccupancyGrid:
-        """The map at the current corrections: with loop closure, every drawn scan at its
-        latest node's correction composed with its front-end pose, in the order tracked.
-
-        Only the scans drawn since the last call are added when no earlier node's correction
-        changed since; otherwise the grid is drawn again from the first scan (the same grid
-        either way: the same scans, poses and order).
-        """
+    def map_image(self) -> GridImage:
+        """The map at the current corrections. With loop closure: the chunks (`ChunkedMap`)
+        composed, each moved by its anchor node's correction (optimised ∘ front-end⁻¹), a cost
+        that grows with the chunks, not the scans; without: the one grid."""
+        if self._chunks is not None:
+            return self._chunks.compose(self.backend.corrections())
         if self._grid is None:
             raise ValueError("this session keeps no map (map_resolution_m is None)")
-        if not self.params.loop_closure:
-            return self._grid
-        corrections = self.backend.corrections()
-        old = self._grid_corrections
-        if corrections[: len(old)] != old:
-            self._grid = OccupancyGrid(self._grid.resolution_m)
-            self._grid_drawn = 0
-            if self.keep_trajectory:
-                self.integrate_ns.clear()
-        for scan, pose, node in self._drawn[self._grid_drawn :]:
-            self._draw(scan, pose if node < 0 else corrections[node].compose(pose))
-        self._grid_drawn = len(self._drawn)
-        self._grid_corrections = corrections
-        return self._grid
-
-    def map_image(self) -> GridImage:
-        """The map at the current corrections, as an image."""
-        return self.draw_map().snapshot()
+        return self._grid.snapshot()
 
     @property
     def has_map(self) -> bool:
-        return self._grid is not None
+        return self._grid is not None or self._chunks is not None
 
     @property
     def map_bytes(self) -> int:
-        """The map's memory: its grid and, with loop closure, the scans kept to draw it."""
-        grid = self._grid.memory_bytes() if self._grid is not None else 0
-        return grid + sum(int(scan.ranges_m.nbytes) for scan, _, _ in self._drawn)
-
-    @property
-    def drawn_scans(self) -> int:
-        """Scans drawn into the map so far (with loop closure: kept to be drawn)."""
-        return len(self._drawn) if self.params.loop_closure else self._grid_drawn
+        """The map's memory: its grid, or its chunks' tiles."""
+        if self._chunks is not None:
+            return self._chunks.nbytes
+        return self._grid.memory_bytes() if self._grid is not None else 0

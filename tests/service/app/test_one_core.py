@@ -122,7 +122,7 @@ def test_live_session_makes_the_offline_trajectory_and_map(
     live_xyt = np.array([(p["x"], p["y"], p["theta"]) for p in live_poses])
     cli_xyt = np.array([tuple(p) for p in run.poses])
     np.testing.assert_allclose(live_xyt, cli_xyt, rtol=0, atol=1e-9)
-    cli_map = run.grid.snapshot() if run.grid is not None else None
+    cli_map = run.image
     assert cli_map is not None
     assert (live_map.origin_x_m, live_map.origin_y_m) == (cli_map.origin_x_m, cli_map.origin_y_m)
     np.testing.assert_array_equal(live_map.occupancy, cli_map.occupancy)

@@ -41,7 +41,7 @@ from service.app.api.app import create_app
 from service.app.foxglove import session_loop_closures
 from service.app.runtime import MappingRuntime
 from service.app.settings import IngestSettings, ServiceSettings, StorageSettings
-from service.core.backend.graph import GraphParams
+from service.core.backend.params import GraphParams
 
 SEED = 1
 SPEED_MPS = 2.0  # one loop in ~46 s of scans (1,830): the closure comes back at the start

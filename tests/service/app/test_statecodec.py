@@ -75,12 +75,15 @@ def test_the_matcher_front_end_round_trips_too() -> None:
         manhattan.restore(a.state())
 
 
-@pytest.mark.parametrize("old", [(1, 2), {"version": 2, "estimator": None}])
+@pytest.mark.parametrize(
+    "old", [(1, 2), {"version": 2, "estimator": None}, {"version": 3, "session": None}]
+)
 def test_older_state_versions_are_refused_by_name(old: object) -> None:
-    """Versions 1 and 2 drew the map another way: refused (the session replays instead)."""
+    """Versions 1 to 3 held the map another way: refused (the session replays instead)."""
     mapper = LocalMapper(Engine(loop_closure=False), True, 0.05)
     data = statecodec.encode(old, ("service.core",))
-    with pytest.raises(statecodec.StateCodecError, match=r"version [12] is not 3"):
+    refused = r"version [123] is not 4 \(versions 1 to 3 "
+    with pytest.raises(statecodec.StateCodecError, match=refused):
         mapper.restore(data)
 
 
