@@ -31,14 +31,13 @@ CORE = ("service.core",)
 
 def run(km: float, *, every_m: float = 250.0, seed: int = 1) -> dict[str, Any]:
     from service.app import statecodec
-    from service.core.slam import SlamBackend, SlamParams, SlamSession
+    from service.core.slam import SlamParams, SlamSession
 
     probe = make_synthetic_run(seed, max_scans=2, size="paper")
     laps = max(1.0, km * 1000.0 / probe.loop_length_m)
     synthetic = make_synthetic_run(seed, laps=laps, size="paper")
-    session = SlamSession(None, SlamParams(loop_closure=True))
-    # As the service holds it: the map as chunks (`LiveBackend`), not drawn offline at the end.
-    session.backend = SlamBackend(session.params, map_resolution_m=0.05)
+    # As the service holds it: the map as chunks (`maps.composed`), in the checkpoint.
+    session = SlamSession(None, SlamParams(loop_closure=True), map_resolution_m=0.05)
     samples: list[dict[str, float]] = []
     travelled_m, next_m = 0.0, every_m
     with tempfile.TemporaryDirectory() as tmp:
@@ -51,7 +50,7 @@ def run(km: float, *, every_m: float = 250.0, seed: int = 1) -> dict[str, Any]:
             if not (travelled_m >= next_m or done):
                 continue
             next_m += every_m
-            state = {"core": session.backend}
+            state = {"core": session}
             t0 = time.perf_counter()
             whole = statecodec.encode(state, CORE)
             t1 = time.perf_counter()

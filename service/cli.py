@@ -205,6 +205,13 @@ def build_parser() -> argparse.ArgumentParser:
         "published (default: loop closure on, in the background; docs/backend.md)",
     )
     p_serve.add_argument(
+        "--front-end",
+        choices=("manhattan", "matcher"),
+        default=None,
+        help="every session's front end, as `map --front-end` (or env MAPPING_FRONT_END; "
+        "default: manhattan)",
+    )
+    p_serve.add_argument(
         "--foxglove-port",
         type=int,
         default=0,

@@ -1,7 +1,7 @@
 """`mapping-service map INPUT --out DIR`: map a bag or a recording offline.
 
-Reads the scans (`clients.logs`), runs the estimator on each, integrates the map at the
-estimated poses and writes into DIR:
+Reads the scans (`clients.logs`), runs them through one `service.core.slam.SlamSession` (the
+core the live service runs too: front end, back end, map) and writes into DIR:
 
 - `trajectory.tum`: one line per scan, `stamp x y z qx qy qz qw`, stamp = scan header stamp (s);
 - `trajectory_covariance.csv`: one row per scan, the front end's own pose (before loop
@@ -37,17 +37,22 @@ from clients.wire import PoseFlag, Scan
 from service import mapio
 from service.bridge import scan_to_laser
 from service.core.frontend.params import EstimatorParams
-from service.core.maps.grid import OccupancyGrid
-from service.core.slam import FrontEndName, LoopStats, SlamParams, SlamSession, make_frontend
-from service.core.types import LaserScan, Pose2D, PoseEstimate
+from service.core.maps.grid import GridImage
+from service.core.slam import (
+    DEFAULT_INTEGRATE_EVERY,
+    FrontEndName,
+    LoopStats,
+    SlamParams,
+    SlamSession,
+    make_frontend,
+)
+from service.core.types import Pose2D, PoseEstimate
 
 log = logging.getLogger(__name__)
 
 EXIT_OK: Final = 0
 EXIT_OUTPUT: Final = 1  # the output directory cannot be written
 EXIT_INPUT: Final = 2  # the input cannot be read or holds no scans
-# Integrate every keyframe, and at least every Nth scan so slow motion still paints free space.
-DEFAULT_INTEGRATE_EVERY: Final = 5
 QUALITY_LOW: Final = 0.5
 
 
@@ -63,7 +68,7 @@ class MapRun:
     estimates: list[PoseEstimate] = field(default_factory=list)
     estimator_ns: list[int] = field(default_factory=list)  # time of `process` per scan
     integrate_ns: list[int] = field(default_factory=list)  # time of `integrate` per call
-    grid: OccupancyGrid | None = None
+    image: GridImage | None = None  # the map, at the finished poses
     wall_s: float = 0.0
     beam_counts: set[int] = field(default_factory=set)
     with_odometry: int = 0  # scans that carried odometry into the estimator
@@ -101,12 +106,13 @@ def map_scans(
     slam_params: SlamParams | None = None,
     front_end: FrontEndName = "manhattan",
 ) -> MapRun:
-    """Estimate a pose for every scan and build the occupancy grid.
+    """Estimate a pose for every scan and build the occupancy map (`SlamSession`).
 
-    The grid integrates keyframes and every `integrate_every`-th scan (0: keyframes only);
-    degenerate poses are never integrated (their pose is only a prediction). With
-    `loop_closure`, the back end closes loops over the keyframes and the grid is drawn at the
-    optimised poses once the run is over.
+    The map draws keyframes and every `integrate_every`-th scan (0: keyframes only); degenerate
+    poses are never drawn (their pose is only a prediction). Without loop closure it is one
+    grid at the front-end poses. With `loop_closure`, the back end closes loops over the
+    keyframes; each drawn scan goes, at its front-end pose, into the map chunk of its stretch
+    of travel, and the map is the chunks composed at their anchor nodes' finished poses.
     """
     if params is None:
         params = EstimatorParams(use_odometry=use_odometry)
@@ -116,13 +122,15 @@ def map_scans(
         slam_params = SlamParams(loop_closure=loop_closure)
     elif slam_params.loop_closure != loop_closure:
         slam_params = replace(slam_params, loop_closure=loop_closure)
+    frontend = make_frontend(front_end, params, use_odometry=use_odometry)
     slam = SlamSession(
-        params, slam_params, make_frontend(front_end, params, use_odometry=use_odometry)
+        params,
+        slam_params,
+        frontend,
+        map_resolution_m=resolution_m,
+        integrate_every=integrate_every,
     )
-    grid = OccupancyGrid(resolution_m)
-    run = MapRun(grid=grid, front_end=front_end)
-    deferred: list[tuple[int, LaserScan]] = []  # integrated once the poses are final
-    since_integrated = 0
+    run = MapRun(front_end=front_end)
     start = time.perf_counter()
     bar = tqdm(
         total=total,
@@ -136,24 +144,14 @@ def map_scans(
         for scan in scans:
             laser = scan_to_laser(scan, use_odometry=use_odometry)
             t0 = time.perf_counter_ns()
-            estimate = slam.frontend.process(laser)
+            tracked = slam.track(laser)
             run.estimator_ns.append(time.perf_counter_ns() - t0)
-            slam.observe(laser, estimate)
+            slam.integrate(tracked)
+            estimate = tracked.estimate
             run.stamps_ns.append(scan.stamp_ns)
             run.estimates.append(estimate)
             run.beam_counts.add(scan.beam_count)
             run.with_odometry += laser.odom is not None
-            since_integrated += 1
-            usable = not estimate.flags & PoseFlag.DEGENERATE
-            due = integrate_every > 0 and since_integrated >= integrate_every
-            if usable and (estimate.is_keyframe or due or run.scans == 1):
-                if slam_params.loop_closure:
-                    deferred.append((run.scans - 1, laser))
-                else:
-                    t1 = time.perf_counter_ns()
-                    grid.integrate(laser, estimate.pose)
-                    run.integrate_ns.append(time.perf_counter_ns() - t1)
-                since_integrated = 0
             if on_estimate is not None:
                 on_estimate(scan, estimate)
             bar.update(1)
@@ -164,12 +162,10 @@ def map_scans(
     if slam_params.loop_closure:
         run.optimised = slam.finish()
         run.loops = slam.stats
-        for index, laser in deferred:
-            t1 = time.perf_counter_ns()
-            grid.integrate(laser, run.optimised[index])
-            run.integrate_ns.append(time.perf_counter_ns() - t1)
+    run.image = slam.map_image()
+    run.integrate_ns = slam.integrate_ns
     run.backend_s = slam.stats.total_s
-    run.wall_families_deg = [round(math.degrees(a), 2) for a in slam.frontend.wall_families_rad]
+    run.wall_families_deg = [round(math.degrees(a), 2) for a in frontend.wall_families_rad]
     run.wall_s = time.perf_counter() - start
     return run
 
@@ -265,8 +261,8 @@ def build_report(
     }
     if input_info is not None:
         report["input"] = input_info
-    if run.grid is not None:
-        image = run.grid.snapshot()
+    if run.image is not None:
+        image = run.image
         res_m = float(image.resolution_m)
         report["map"] = {
             "resolution_m": res_m,
@@ -292,9 +288,9 @@ def write_outputs(
     """Write trajectory.tum, trajectory_covariance.csv, map.png, map.pgm, map.yaml and
     report.json; return the report."""
     out = Path(out_dir)
-    if run.grid is None:
+    if run.image is None:
         raise OfflineError("the run has no map")
-    image = run.grid.snapshot()
+    image = run.image
     report = build_report(run, input_info=input_info, params=params)
     try:
         out.mkdir(parents=True, exist_ok=True)

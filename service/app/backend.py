@@ -1,15 +1,22 @@
-"""The live back end: loop search and the pose graph beside the 40 Hz front end, never in its way.
+"""The live back end: the back half of a session's core beside the 40 Hz front end, off its path.
 
-`LocalMapper.map_scan` runs the front end and answers at once; a keyframe is handed to the
-session's `LiveBackend` (a non-blocking append). One thread per process (`BackendScheduler`)
-serves every session's back end round-robin, one node per turn, as the ingest pool serves
-robots: submaps, loop search, iSAM2 (`service.core.slam.SlamBackend`, pure). What the front
-end reads back is published, not computed on demand: after each node the thread swaps in
+A session's core is one `service.core.slam.SlamSession`, the same class `mapping-service map`
+runs. `LocalMapper.map_scan` runs its front half (`SlamSession.track`: the front end and the
+map rule) and answers at once; what the back half needs (a keyframe, a scan to draw) is handed
+to the session's `LiveBackend` (a non-blocking append). One thread per process
+(`BackendScheduler`) serves every session's back end round-robin, one item per turn, as the
+ingest pool serves robots, and runs the back half on it (`SlamSession.integrate`: submaps,
+loop search, iSAM2, the map's scans) in the order tracked, so that once it is idle its nodes,
+closures and map are the offline run's. What the front end reads back is published, not
+computed on demand: after each item the thread swaps in
 - the newest node's correction (optimised ∘ front-end⁻¹), which moves every later front-end
   pose onto the graph (the published pose);
 - a `GraphSnapshot` (nodes, closures, counters), at most every `VIEW_PERIOD_S` and at once
   after a closure;
-- the map composed from the chunks at the optimised poses, at most every `RENDER_PERIOD_S`.
+- the map at the current corrections (`SlamSession.map_image`: the frozen map chunks composed
+  at their anchors' corrections, a cost that grows with the chunks, not the scans), at most
+  every `RENDER_PERIOD_S` and at most `RENDER_SHARE` of the thread's time.
+`finish` (a stopped session) queues the core's final search and batch optimisation.
 Reads take references under a lock held for microseconds, never the lock of the work.
 
 In a mapper process this all runs in that process (the service asks it over the pipe).
@@ -31,22 +38,47 @@ from typing import Any, Final
 import numpy as np
 import numpy.typing as npt
 
+from clients.wire import PoseFlag
 from service.core.maps.grid import GridImage
-from service.core.slam import SlamBackend, SlamParams
-from service.core.types import LaserScan, Pose2D
+from service.core.slam import SlamBackend, SlamSession, Tracked
+from service.core.types import Pose2D, PoseEstimate
 
 log = logging.getLogger(__name__)
 
 VIEW_PERIOD_S: Final = 0.5  # graph snapshots, at most this often (and after every closure)
-RENDER_PERIOD_S: Final = 1.0  # the composed map, at most this often
+RENDER_PERIOD_S: Final = 1.0  # the map, at most this often
+# ... and at most this share of the thread's time: composing every chunk grows with the area
+# travelled (a few ms on a 91 m loop).
+RENDER_SHARE: Final = 0.25
 RECENT_REJECTED: Final = 100  # refused searches shown in a snapshot
 # The back end's thread runs this much nicer than the pose path (Linux, where a thread has its
 # own nice value): on cores the front end also needs, the back end falls behind (its queue,
 # `pending`, grows) and the 40 Hz poses do not.
 BACKEND_NICE: Final = 10
 
-# A node waiting for the back end: (scan, front-end pose, covariance (9), flags, pose sequence).
-NodeItem = tuple[LaserScan, Pose2D, tuple[float, ...], int, int]
+# Work waiting for the back half: a tracked scan and its pose sequence, or None: finish.
+BackItem = tuple[Tracked, int] | None
+
+
+def plain_item(item: BackItem) -> tuple[Any, ...] | None:
+    """`item` as checkpoint data (its flags as an int: `PoseFlag` is the wire's, not data)."""
+    if item is None:
+        return None
+    tracked, seq = item
+    e = tracked.estimate
+    estimate = (e.stamp_ns, e.pose, e.quality, int(e.flags), e.is_keyframe, e.covariance)
+    return (tracked.scan, estimate, tracked.node, tracked.drawn, seq)
+
+
+def item_of(plain: tuple[Any, ...] | None) -> BackItem:
+    """`plain_item` undone."""
+    if plain is None:
+        return None
+    scan, (stamp_ns, pose, quality, flags, keyframe, covariance), node, drawn, seq = plain
+    estimate = PoseEstimate(
+        int(stamp_ns), pose, float(quality), PoseFlag(flags), bool(keyframe), tuple(covariance)
+    )
+    return Tracked(scan, estimate, bool(node), bool(drawn)), int(seq)
 
 
 @dataclass(frozen=True, slots=True)
@@ -188,21 +220,15 @@ _SCHEDULER = BackendScheduler()
 
 
 class LiveBackend:
-    """One session's back end, fed by the front end's thread and run by the scheduler's."""
+    """The back half of one session's core (`SlamSession`), fed by the front end's thread and
+    run by the scheduler's. The front half (`SlamSession.track`) stays with the caller."""
 
-    def __init__(
-        self,
-        resolution_m: float,
-        params: SlamParams | None = None,
-        scheduler: BackendScheduler | None = None,
-    ) -> None:
-        self._resolution_m = resolution_m
-        self._params = params if params is not None else SlamParams()
+    def __init__(self, session: SlamSession, scheduler: BackendScheduler | None = None) -> None:
+        self._session = session
         self._scheduler = scheduler if scheduler is not None else _SCHEDULER
-        self._core = SlamBackend(self._params, map_resolution_m=resolution_m)
-        self._work = threading.Lock()  # held while the core changes (a node, a render)
+        self._work = threading.Lock()  # held while the core's back half changes (work, render)
         self._lock = threading.Lock()  # guards the queue and the published references
-        self._queue: deque[NodeItem] = deque()
+        self._queue: deque[BackItem] = deque()
         self.scheduled = False  # guarded by the scheduler's lock
         self.again = False  # scheduled again while scheduled (guarded by the scheduler's lock)
         self._closed = False
@@ -220,18 +246,32 @@ class LiveBackend:
         self._timer_armed = False
         self._last_view_s = 0.0
         self._last_render_s = 0.0
+        self._render_cost_s = 0.0  # the last render's duration
         self.errors = 0
         self._idle = threading.Condition(self._lock)
 
+    @property
+    def _core(self) -> SlamBackend:
+        """The core's back end (its graph, submaps and loop search)."""
+        return self._session.backend
+
     # -- front end's side (never waits for the work) -----------------------------------------
 
-    def submit(self, scan: LaserScan, pose: Pose2D, covariance: Any, flags: int, seq: int) -> None:
-        cov = tuple(float(v) for v in covariance)
+    def submit(self, tracked: Tracked, seq: int) -> None:
+        """Queue a tracked scan's back half (a node, a scan to draw)."""
+        self._put((tracked, int(seq)))
+
+    def finish(self) -> None:
+        """Queue the core's final search and batch optimisation (after the queued scans)."""
+        self._put(None)
+
+    def _put(self, item: BackItem) -> None:
         with self._lock:
             if self._closed:
                 return
-            self._queue.append((scan, pose, cov, int(flags), int(seq)))
-            self._unpublished += 1
+            self._queue.append(item)
+            if item is None or item[0].node:
+                self._unpublished += 1
         self._scheduler.schedule(self)
 
     def correction(self) -> tuple[int, Pose2D, int]:
@@ -253,28 +293,22 @@ class LiveBackend:
     # -- the scheduler's side --------------------------------------------------------------
 
     def step(self) -> bool:
-        """Process one queued node (and publish what changed); True while more are queued."""
+        """Process one queued item (and publish what changed); True while more are queued."""
         with self._work:
             with self._lock:
-                item = self._queue.popleft() if self._queue else None
+                has_item = bool(self._queue)
+                item = self._queue.popleft() if has_item else None
                 generation = self._generation
             closure = False
-            if item is not None:
-                scan, pose, cov, flags, seq = item
-                try:
-                    closure = self._core.add_node(scan, pose, cov, flags, seq)
-                except Exception:
-                    self.errors += 1
-                    if self.errors == 1 or math.log2(self.errors).is_integer():
-                        log.exception(
-                            "back end failed on node seq %d (%d so far)", seq, self.errors
-                        )
-                correction = _snap(self._core.latest_correction())
-                with self._lock:
-                    if generation == self._generation:
-                        self._revision += 1
-                        self._correction = correction
-                self._view_due = True
+            if has_item:
+                closure, changed = self._apply(item)
+                if changed:
+                    correction = _snap(self._core.latest_correction())
+                    with self._lock:
+                        if generation == self._generation:
+                            self._revision += 1
+                            self._correction = correction
+                    self._view_due = True
                 self._image_due = True
                 if closure:
                     log.info(
@@ -289,12 +323,12 @@ class LiveBackend:
                 closure or not queued or now - self._last_view_s >= VIEW_PERIOD_S
             ):
                 self._publish_view()
-            if self._image_due and (closure or now - self._last_render_s >= RENDER_PERIOD_S):
+            if self._image_due and (closure or now - self._last_render_s >= self._render_period()):
                 self._render()
             if not queued and self._image_due and not self._timer_armed:
                 # Drawn at most once a period: come back when it is due, not before.
                 self._timer_armed = True
-                delay = max(0.0, RENDER_PERIOD_S - (now - self._last_render_s))
+                delay = max(0.0, self._render_period() - (now - self._last_render_s))
                 timer = threading.Timer(delay, self._render_due)
                 timer.daemon = True
                 timer.start()
@@ -302,6 +336,27 @@ class LiveBackend:
                 with self._lock:
                     self._idle.notify_all()
             return queued > 0
+
+    def _apply(self, item: BackItem) -> tuple[bool, bool]:
+        """One item on the core: (a closure was accepted, the graph changed)."""
+        session = self._session
+        try:
+            if item is None:
+                nodes = session.backend.node_count
+                accepted = session.stats.accepted
+                session.finish()
+                return session.stats.accepted > accepted, nodes > 0
+            tracked, seq = item
+            return session.integrate(tracked, seq), tracked.node
+        except Exception:
+            self.errors += 1
+            if self.errors == 1 or math.log2(self.errors).is_integer():
+                seq = -1 if item is None else item[1]
+                log.exception("back end failed on seq %d (%d so far)", seq, self.errors)
+            return False, item is None or item[0].node
+
+    def _render_period(self) -> float:
+        return max(RENDER_PERIOD_S, self._render_cost_s / RENDER_SHARE)
 
     def _render_due(self) -> None:
         self._timer_armed = False
@@ -318,6 +373,7 @@ class LiveBackend:
             for r in [*core.stats.closures, *recent]
         )
         with self._lock:
+            pending = sum(1 for item in self._queue if item is None or item[0].node)
             snap = GraphSnapshot(
                 revision=self._revision,
                 node_seq=np.array(core.node_seq, dtype=np.int64),
@@ -326,24 +382,25 @@ class LiveBackend:
                 closures=closures,
                 accepted=core.stats.accepted,
                 rejected=dict(core.stats.rejected),
-                pending=len(self._queue),
+                pending=pending,
                 errors=self.errors,
                 image_revision=self._image_revision,
-                map_bytes=core.chunks.nbytes if core.chunks is not None else 0,
+                map_bytes=self._session.map_bytes,
                 solver_restarts=core.graph.isam_restarts,
                 corrections=_corrections(fe, opt),
             )
             self._snapshot = snap
-            self._unpublished = len(self._queue)
+            self._unpublished = pending
         self._view_due = False
         self._last_view_s = time.monotonic()
 
     def _render(self) -> None:
-        core = self._core
-        if core.chunks is None:
+        if not self._session.has_map:
             self._image_due = False
             return
-        image = core.chunks.compose([_snap(c) for c in core.corrections()])
+        t0 = time.perf_counter()
+        image = self._session.map_image()
+        self._render_cost_s = time.perf_counter() - t0
         with self._lock:
             self._image = image
             self._image_revision += 1
@@ -358,7 +415,7 @@ class LiveBackend:
     # -- control -----------------------------------------------------------------------------
 
     def wait_idle(self, timeout_s: float = 60.0) -> bool:
-        """Until every queued node is in the graph and the map is drawn (tests, shutdown)."""
+        """Until every queued item is in the core and the map is drawn (tests, shutdown)."""
         deadline = time.monotonic() + timeout_s
         with self._lock:
             while self._queue or self.scheduled or self._view_due or self._image_due:
@@ -368,37 +425,35 @@ class LiveBackend:
                 self._idle.wait(min(left, 0.05))
         return True
 
-    def state(self, encode: Callable[[dict[str, Any]], bytes]) -> bytes:
-        """`encode` of the core and the nodes still queued (plain data for `statecodec`), with
-        the back end's thread held off the core until it is encoded (it waits for the node
-        being processed, at most one)."""
+    def state(self, encode: Callable[[list[Any]], bytes]) -> bytes:
+        """`encode` of the items still queued (`plain_item`), with the back end's thread held
+        off the core until it is encoded (it waits for the item being processed, at most one)."""
         with self._work:
             with self._lock:
-                queued = list(self._queue)
-            return encode({"core": self._core, "queued": queued})
+                queued = [plain_item(item) for item in self._queue]
+            return encode(queued)
 
-    def restore(self, state: dict[str, Any]) -> None:
-        core = state["core"]
-        if not isinstance(core, SlamBackend):
-            raise TypeError("not a back end state")
+    def restore(self, session: SlamSession, queued: list[Any]) -> None:
+        """Run `session` (restored from a checkpoint) with its `queued` items (`state`)."""
         with self._work:
             with self._lock:
                 self._generation += 1
-                self._core = core
-                self._queue = deque(state.get("queued", ()))
+                self._session = session
+                self._queue = deque(item_of(plain) for plain in queued)
                 self._unpublished = len(self._queue) + 1
-                self._correction = _snap(core.latest_correction())
+                self._correction = _snap(session.backend.latest_correction())
                 self._revision += 1
             self._view_due = self._image_due = True
         self._scheduler.schedule(self)
 
-    def reset(self) -> None:
+    def reset(self, session: SlamSession) -> None:
+        """Start again on a fresh `session`."""
         with self._work:
             with self._lock:
                 self._generation += 1
                 self._queue.clear()
                 self._unpublished = 1
-                self._core = SlamBackend(self._params, map_resolution_m=self._resolution_m)
+                self._session = session
                 self._correction = Pose2D(0.0, 0.0, 0.0)
                 self._revision += 1
                 self._image = None

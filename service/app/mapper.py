@@ -1,8 +1,8 @@
-"""Where a session's estimator and grid run: in the service's process, or in mapper processes.
+"""Where a session's SLAM core runs: in the service's process, or in mapper processes.
 
 One Python process estimates on one core: the work per scan holds the GIL. With
 `mapper_processes` > 0 the service starts that many worker processes and places each session's
-estimator and grid in one of them (the least loaded when the session is made). The service's
+mapper in one of them (the least loaded when the session is made). The service's
 process keeps Zenoh, validation, HTTP and the fan-out.
 
 The per-scan path of an active session runs in its mapper process under a *lease* of the
@@ -18,10 +18,13 @@ Protocol on the pipe: service → process `("call", id, op, key, args)` and `("s
 payload)`; process → service `("reply", id, status, value)` and `("done", key, Done)`. One
 reader thread per process in the service receives both.
 
-With `Engine.loop_closure` (the default) each session's mapper also holds its back end
-(`service.app.backend.LiveBackend`): keyframes go to a background thread of the same process,
-which closes loops and draws the map at the optimised poses; `map_scan` answers with the front
-end's pose and the newest correction, and never waits for that thread.
+A session's mapper holds its core, `service.core.slam.SlamSession`: the class
+`mapping-service map` runs (front end by name, `Engine.front_end`; back end; map). `map_scan`
+runs its front half (`track`). With `Engine.loop_closure` (the default) the back half (nodes,
+loop search, the map's scans) goes to a background thread of the same process
+(`service.app.backend.LiveBackend`), which also draws the map at the corrected poses;
+`map_scan` answers with the front end's pose and the newest correction, and never waits for
+that thread. Without it, the back half (the map alone) runs on the per-scan path.
 
 A mapper process that dies (killed, out of memory) loses the state of its sessions. The process
 is started again at the next call, and each of its sessions sees `MapperLostError` once: the
@@ -55,8 +58,17 @@ import numpy as np
 from clients.recording import RecordingReport, RecordingWriter
 from clients.wire import Pose, PoseFlag, Scan, decode_scan, encode_pose
 from service.app import statecodec
+from service.core.frontend.params import EstimatorParams
 from service.core.maps.grid import GridImage
-from service.core.types import LaserScan, Pose2D, PoseEstimate
+from service.core.slam import (
+    DEFAULT_INTEGRATE_EVERY,
+    FrontEndName,
+    SlamParams,
+    SlamSession,
+    Tracker,
+    make_frontend,
+)
+from service.core.types import LaserScan
 
 if TYPE_CHECKING:
     from service.app.backend import GraphSnapshot, LiveBackend
@@ -66,35 +78,14 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 
-STATE_VERSION: Final = 2  # LocalMapper.state(): 1 = (estimator, grid), 2 = a dict with the back end
+# LocalMapper.state(): 1 = (estimator, grid), 2 = {estimator, grid, back end}, 3 = {the session
+# core (`SlamSession`) with every drawn scan kept, the back-half items queued}, 4 = the same with
+# the map as chunks (`maps.composed`). Only 4 is read: 1 to 3 hold the map another way.
+STATE_VERSION: Final = 4
 
 
-class Estimator(Protocol):
-    def process(self, scan: LaserScan) -> PoseEstimate: ...
-    def reset(self) -> None: ...
-
-
-class Grid(Protocol):
-    def integrate(self, scan: LaserScan, pose: Pose2D) -> None: ...
-    def snapshot(self) -> Any: ...
-
-
-EstimatorFactory = Callable[[bool], Estimator]  # use_odometry -> estimator
-GridFactory = Callable[[float], Grid]  # resolution_m -> grid
+EstimatorFactory = Callable[[bool], Tracker]  # use_odometry -> front end
 ScanConverter = Callable[[Scan, bool], LaserScan]  # (scan, use_odometry) -> LaserScan
-
-
-def default_estimator_factory(use_odometry: bool) -> Estimator:
-    from service.core.frontend.estimator import ManhattanEstimator  # noqa: PLC0415
-    from service.core.frontend.params import EstimatorParams  # noqa: PLC0415
-
-    return ManhattanEstimator(EstimatorParams(use_odometry=use_odometry))
-
-
-def default_grid_factory(resolution_m: float) -> Grid:
-    from service.core.maps.grid import OccupancyGrid  # noqa: PLC0415
-
-    return OccupancyGrid(resolution_m=resolution_m)
 
 
 def default_scan_converter(scan: Scan, use_odometry: bool) -> LaserScan:
@@ -105,15 +96,20 @@ def default_scan_converter(scan: Scan, use_odometry: bool) -> LaserScan:
 
 @dataclass(frozen=True, slots=True)
 class Engine:
-    """How sessions turn scans into poses and maps (swappable in tests; picklable by reference
-    when its factories are module-level functions, as mapper processes need)."""
+    """How sessions turn scans into poses and maps: the settings of each session's core
+    (`SlamSession`, the one `mapping-service map` runs). Picklable by reference when its
+    functions are module-level ones, as mapper processes need."""
 
-    make_estimator: EstimatorFactory = default_estimator_factory
-    make_grid: GridFactory = default_grid_factory
-    to_laser: ScanConverter = default_scan_converter
+    # The front end by name (`service.core.slam.make_frontend`): "manhattan" or "matcher".
+    front_end: FrontEndName = "manhattan"
     # The back end (loop closure, pose graph) beside the front end, in a background thread
-    # (service/app/backend.py); False: the front end and its grid alone.
+    # (service/app/backend.py); False: the front end and its map alone.
     loop_closure: bool = True
+    # The map rule's "every Nth scan" (`SlamSession`): as `mapping-service map`.
+    integrate_every: int = DEFAULT_INTEGRATE_EVERY
+    # Tests only: a front end of their own instead of `front_end`.
+    make_estimator: EstimatorFactory | None = None
+    to_laser: ScanConverter = default_scan_converter
 
 
 class MappedScan(NamedTuple):
@@ -201,7 +197,7 @@ class MapperLostError(MapperError):
 
 
 class Mapper(Protocol):
-    """One session's estimator and grid."""
+    """One session's core: front end, back end and map."""
 
     def map_scan(self, scan: Scan, payload: bytes | None = None, seq: int = -1) -> MappedScan:
         """Map `scan`; `payload` is its wire encoding when the caller has it (a mapper in
@@ -211,6 +207,10 @@ class Mapper(Protocol):
 
     def graph(self, known_revision: int = -1) -> GraphSnapshot | None:
         """The back end's graph; None when it is still `known_revision` (or there is none)."""
+        ...
+
+    def finish(self) -> None:
+        """The session's scans are over: the core's final search and batch optimisation."""
         ...
 
     def reset(self) -> None: ...
@@ -228,37 +228,53 @@ MapperFactory = Callable[[str, bool, float], Mapper]  # (session id, use_odometr
 
 
 class LocalMapper:
-    """Estimator and grid in this process; with `engine.loop_closure`, the back end too (its
-    work in the process's back-end thread, its map composed there)."""
+    """One session's core (`service.core.slam.SlamSession`: front end, back end, map) in this
+    process. The scan's front half runs here, at once; with `engine.loop_closure` its back
+    half runs in the process's back-end thread (`LiveBackend`), else here too."""
 
     def __init__(self, engine: Engine, use_odometry: bool, resolution_m: float) -> None:
         self._engine = engine
         self._use_odometry = use_odometry
         self._resolution_m = resolution_m
-        self._estimator = engine.make_estimator(use_odometry)
-        self._grid = engine.make_grid(resolution_m)
+        self._session = self._new_session()
         self._backend: LiveBackend | None = None
         self._array_pack: statecodec.ArrayPack | None = None  # `state`, `restore`
         if engine.loop_closure:
             from service.app.backend import LiveBackend  # noqa: PLC0415  # gtsam: only when used
 
-            self._backend = LiveBackend(resolution_m)
+            self._backend = LiveBackend(self._session)
+
+    def _new_session(self) -> SlamSession:
+        engine = self._engine
+        frontend: Tracker
+        if engine.make_estimator is not None:
+            frontend = engine.make_estimator(self._use_odometry)
+        else:
+            params = EstimatorParams(use_odometry=self._use_odometry)
+            frontend = make_frontend(engine.front_end, params, use_odometry=self._use_odometry)
+        return SlamSession(
+            None,
+            SlamParams(loop_closure=engine.loop_closure),
+            frontend,
+            map_resolution_m=self._resolution_m,
+            integrate_every=engine.integrate_every,
+            keep_trajectory=False,  # the session records its poses itself
+        )
 
     def map_scan(self, scan: Scan, payload: bytes | None = None, seq: int = -1) -> MappedScan:
         laser = self._engine.to_laser(scan, self._use_odometry)
-        estimate = self._estimator.process(laser)
+        tracked = self._session.track(laser)
+        estimate = tracked.estimate
         pose = estimate.pose
         covariance = tuple(float(v) for v in getattr(estimate, "covariance", ()))
         backend = self._backend
         revision, image_revision = 0, 0
         correction = (0.0, 0.0, 0.0)
         if backend is None:
-            if estimate.is_keyframe:
-                self._grid.integrate(laser, pose)
+            self._session.integrate(tracked, seq)
         else:
-            if estimate.is_keyframe and len(covariance) == 9:
-                # The map is drawn from the back end's chunks: the grid is not integrated.
-                backend.submit(laser, pose, covariance, int(estimate.flags), seq)
+            if tracked.node or tracked.drawn:
+                backend.submit(tracked, seq)
             revision, c, image_revision = backend.correction()
             correction = (c.x_m, c.y_m, c.theta_rad)
         return MappedScan(
@@ -288,26 +304,33 @@ class LocalMapper:
         """Until the back end has every node and its map drawn (tests and benchmarks)."""
         return self._backend is None or self._backend.wait_idle(timeout_s)
 
+    def finish(self) -> None:
+        """The end of the session's scans: the core's final loop search and batch
+        optimisation (as `mapping-service map` ends), in the back-end thread."""
+        if self._backend is not None:
+            self._backend.finish()
+        else:
+            self._session.finish()
+
     def reset(self) -> None:
-        self._estimator.reset()
-        self._grid = self._engine.make_grid(self._resolution_m)
+        self._session = self._new_session()
         self._array_pack = None  # a reset is a new recording epoch: a new pack
         if self._backend is not None:
-            self._backend.reset()
+            self._backend.reset(self._session)
 
     delegates = False  # records nothing itself: the session's store does
 
     def snapshot(self) -> Any:
         if self._backend is None:
-            return self._grid.snapshot()
+            return self._session.map_image()
         image = self._backend.image()
         if image is None:
             return GridImage(np.zeros((0, 0), dtype=np.int8), 0.0, 0.0, self._resolution_m)
         return image
 
     def _allowed_modules(self) -> tuple[str, ...]:
-        """Where the checkpoint codec may find classes: the core and our own factories'."""
-        return ("service.core", type(self._estimator).__module__, type(self._grid).__module__)
+        """Where the checkpoint codec may find classes: the core and our own front end's."""
+        return ("service.core", type(self._session.frontend).__module__)
 
     def _pack(self, pack_path: str | None) -> statecodec.ArrayPack | None:
         """The session's array pack (one per recording epoch: a new path is a new pack)."""
@@ -318,40 +341,42 @@ class LocalMapper:
         return self._array_pack
 
     def state(self, pack_path: str | None = None) -> bytes:
-        """Estimator, grid and back end as data (arrays plus JSON, compressed): no code, see
-        statecodec. Version 2 (a dict) adds the back end; version 1 was the bare pair."""
+        """The core and the back-half items still queued, as data (arrays plus JSON,
+        compressed): no code, see statecodec. Version 4: `{"version", "session", "queued"}`."""
         allowed = self._allowed_modules()
         pack = self._pack(pack_path)
 
-        def encode(backend: dict[str, Any] | None) -> bytes:
-            tree = {
-                "version": STATE_VERSION,
-                "estimator": self._estimator,
-                "grid": self._grid,
-                "backend": backend,
-            }
+        def encode(queued: list[Any]) -> bytes:
+            tree = {"version": STATE_VERSION, "session": self._session, "queued": queued}
             return statecodec.encode(tree, allowed, pack)
 
-        # The back end's thread is held off its core while it is encoded.
-        return self._backend.state(encode) if self._backend is not None else encode(None)
+        # The back end's thread is held off the core while it is encoded.
+        return self._backend.state(encode) if self._backend is not None else encode([])
 
     def restore(self, state: bytes, pack_path: str | None = None) -> None:
         tree = statecodec.decode(state, self._allowed_modules(), self._pack(pack_path))
-        backend: Any = None
-        if isinstance(tree, tuple) and len(tree) == 2:  # version 1: no back end (it restarts)
-            estimator, grid = tree
-        elif isinstance(tree, dict) and tree.get("version") == STATE_VERSION:
-            estimator, grid, backend = tree["estimator"], tree["grid"], tree["backend"]
-        else:
-            raise statecodec.StateCodecError("unknown mapper state version")
-        if type(estimator) is not type(self._estimator) or type(grid) is not type(self._grid):
-            raise statecodec.StateCodecError("checkpoint of another estimator or grid type")
+        version = (
+            tree.get("version")
+            if isinstance(tree, dict)
+            else 1
+            if isinstance(tree, tuple)
+            else None
+        )
+        if version != STATE_VERSION:
+            raise statecodec.StateCodecError(
+                f"mapper state version {version} is not {STATE_VERSION} (versions 1 to 3 "
+                "hold the map another way: the recording is replayed instead)"
+            )
+        session = tree["session"]
+        if not isinstance(session, SlamSession):
+            raise statecodec.StateCodecError("not a session core")
+        if type(session.frontend) is not type(self._session.frontend):
+            raise statecodec.StateCodecError("checkpoint of another front end")
+        if session.params.loop_closure != self._engine.loop_closure:
+            raise statecodec.StateCodecError("checkpoint with loop closure set otherwise")
+        self._session = session
         if self._backend is not None:
-            if backend is not None:
-                self._backend.restore(backend)
-            else:
-                self._backend.reset()
-        self._estimator, self._grid = estimator, grid
+            self._backend.restore(session, list(tree["queued"]))
 
     def close(self) -> None:
         if self._backend is not None:
@@ -897,6 +922,9 @@ class RemoteMapper:
         """Take the recording back (fsynced and closed); where its intact records end."""
         end: int | None = self._call("revoke")
         return end
+
+    def finish(self) -> None:
+        self._call("finish")
 
     def reset(self) -> None:
         self._call("reset")

@@ -65,7 +65,9 @@ class MappingRuntime:
         self.maps = MapStore(self.data.maps_dir)
         processes = settings.ingest.mapper_processes
         if engine is None:
-            engine = Engine(loop_closure=settings.ingest.loop_closure)
+            engine = Engine(
+                front_end=settings.ingest.front_end, loop_closure=settings.ingest.loop_closure
+            )
         # With `ingest_in_mappers` the mapper processes take the robots' scans from Zenoh
         # themselves; this process does not subscribe to them (service/app/mapper_ingest.py).
         self.ingest_in_mappers = bool(processes and settings.ingest.ingest_in_mappers)

@@ -824,6 +824,8 @@ class MappingSession:
             self._poses.append(pending)
             tail_repaired = True
         self._poses.sort(key=lambda p: p.seq)  # only a damaged recording can disorder them
+        if self.state != "active":
+            mapper.finish()  # a stopped session's scans are over (as `stop` did)
         if self.state == "active":
             last_report = (
                 last[1] if last is not None and last[0].index == self._store.segment else None
@@ -891,6 +893,12 @@ class MappingSession:
             self._ready()
             self._revoke()
             if self.state == "active":
+                try:
+                    # The end of its scans: the core's final search and batch optimisation,
+                    # as `mapping-service map` ends (queued to the back end's thread).
+                    self._ready().finish()
+                except MapperError as err:  # its process died: the restore finishes it
+                    log.warning("session %s: finishing on stop failed: %s", self.id, err)
                 self._checkpoint_if_behind()
                 self._store.close_writer()
                 self._store.set_state("stopped")

@@ -110,6 +110,11 @@ class IngestSettings(_Frozen):
     # The back end (loop search, pose graph) beside every session's front end, in a background
     # thread of the process that runs the estimator (docs/backend.md, "Live").
     loop_closure: bool = Field(default=True, description="close loops (False: the front end alone)")
+    # The front end of every session's core (`service.core.slam.make_frontend`), as
+    # `mapping-service map --front-end`.
+    front_end: Literal["manhattan", "matcher"] = Field(
+        default="manhattan", description="front end: manhattan (default) or matcher"
+    )
     # With mapper processes: each process subscribes to its share of the scan keys itself and
     # runs the whole per-scan path (decode, validate, record, map, publish); the service's
     # process only routes Zenoh, serves HTTP and does control (service/app/mapper.py).
@@ -364,6 +369,11 @@ def build_settings(
             else from_env(mapper_processes="MAPPER_PROCESSES")
         )
         | ({"loop_closure": False} if getattr(args, "no_loop_closure", False) else {})
+        | (
+            {"front_end": args.front_end}
+            if getattr(args, "front_end", None) is not None
+            else from_env(front_end="FRONT_END")
+        )
         | (
             {"ingest_in_mappers": True}
             if getattr(args, "ingest_in_mappers", False)

@@ -9,7 +9,11 @@
             pose graph (gtsam iSAM2) ◀────────────────┘
                  │
                  ▼ optimised nodes ─▶ every scan corrected by its latest node's correction
+                                    └──▶ map: chunks of drawn scans, each moved by its anchor's
 
+`SlamSession` is one session's core, offline and live: front end, back end and map (which scans
+are drawn, into which chunk: `maps.composed`). `mapping-service map` and the live service both
+run it; the live service runs its back half (`integrate`) in a background thread.
 `SlamSession.process` never waits for anything but its own scan's front end and, on a keyframe,
 one bounded loop search. `finish` runs the final batch optimisation.
 """
@@ -21,20 +25,28 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Literal, Protocol
+from typing import TYPE_CHECKING, Any, Final, Literal, NamedTuple, Protocol
 
 import numpy as np
 
 from clients.wire import PoseFlag
-from service.core.backend.graph import GraphParams, PoseGraph, rotate_covariance
 from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
+from service.core.backend.params import GraphParams, rotate_covariance
 from service.core.frontend.estimator import ManhattanEstimator
 from service.core.frontend.paper import PaperFrontEnd
 from service.core.frontend.params import EstimatorParams
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
 from service.core.maps.composed import ChunkedMap
+from service.core.maps.grid import GridImage, OccupancyGrid
 from service.core.maps.submaps import Submap, SubmapBuilder, SubmapParams
 from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate, frozen_array
+
+if TYPE_CHECKING:
+    from service.core.backend.graph import PoseGraph
+
+# The map rule: every keyframe, and at least every Nth scan so slow motion still paints free
+# space (0: keyframes only).
+DEFAULT_INTEGRATE_EVERY: Final = 5
 
 _NOT_ANCHORED = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
 
@@ -102,13 +114,12 @@ class SlamBackend:
 
     `SlamSession` drives it from the same thread as the front end (offline); the live service
     drives it from a background thread (`service.app.backend`), fed with the front end's
-    keyframes. With `map_resolution_m`, every node's scan also goes into a map chunk
-    (`maps.composed`), so that the map can be drawn at the optimised poses.
+    keyframes. The map is the session's (`SlamSession`), not the back end's.
     """
 
-    def __init__(self, params: SlamParams | None = None, map_resolution_m: float | None = None):
+    def __init__(self, params: SlamParams | None = None):
         self.params = params if params is not None else SlamParams()
-        self.graph = PoseGraph(self.params.graph)
+        self._graph: PoseGraph | None = None  # made on first use (`graph`)
         self.submaps = SubmapBuilder(self.params.submaps)
         self.stats = LoopStats()
         self.node_frontend: list[Pose2D] = []  # each node's front-end pose
@@ -117,7 +128,6 @@ class SlamBackend:
         self._chain_xy: list[FloatArray] = []  # prefix sums of sequential xy covariances (map)
         self._last_closure_node = -1
         self._optimised: list[Pose2D] | None = None
-        self.chunks = ChunkedMap(map_resolution_m) if map_resolution_m is not None else None
         self._near = _SubmapNodeIndex()
 
     def __getstate__(self) -> dict[str, object]:
@@ -128,6 +138,16 @@ class SlamBackend:
     def __setstate__(self, state: dict[str, Any]) -> None:
         self.__dict__.update(state)
         self._near = _SubmapNodeIndex()
+
+    @property
+    def graph(self) -> PoseGraph:
+        """The pose graph, made at the first node: gtsam is imported then, so a session
+        without loop closure (no node ever) never imports it."""
+        if self._graph is None:
+            from service.core.backend.graph import PoseGraph  # noqa: PLC0415  # gtsam
+
+            self._graph = PoseGraph(self.params.graph)
+        return self._graph
 
     @property
     def node_count(self) -> int:
@@ -171,8 +191,6 @@ class SlamBackend:
         self.node_points.append(kept)
         self.node_seq.append(seq)
         self.submaps.add_node(node, pose, kept, scan)
-        if self.chunks is not None:
-            self.chunks.add_node(node, pose, scan)
         if node % self.params.update_every_nodes == 0:
             t1 = time.perf_counter()
             self.graph.update()
@@ -279,6 +297,11 @@ class SlamBackend:
             self.stats.solver_restarts = self.graph.isam_restarts
         return self.node_poses()
 
+    @property
+    def finished(self) -> bool:
+        """`finish` ran and no node came since."""
+        return self._optimised is not None
+
     def node_poses(self) -> list[Pose2D]:
         if self._optimised is not None:
             return list(self._optimised)
@@ -304,12 +327,16 @@ FrontEndName = Literal["manhattan", "matcher", "paper"]
 FRONT_ENDS: tuple[FrontEndName, ...] = ("manhattan", "matcher", "paper")
 
 
-class FrontEnd(Protocol):
-    """What the session needs of a front end (`ManhattanEstimator`, `ScanMatcherFrontEnd`)."""
+class Tracker(Protocol):
+    """What the session needs of a front end: a pose per scan."""
 
     def process(self, scan: LaserScan) -> PoseEstimate: ...
 
     def reset(self) -> None: ...
+
+
+class FrontEnd(Tracker, Protocol):
+    """A front end of ours (`ManhattanEstimator`, `ScanMatcherFrontEnd`)."""
 
     @property
     def wall_families_rad(self) -> tuple[float, ...]: ...
@@ -329,20 +356,70 @@ def make_frontend(
     raise ValueError(f"unknown front end {name!r}; use one of {', '.join(FRONT_ENDS)}")
 
 
+class Tracked(NamedTuple):
+    """One scan after the front end: what the session's back half (back end and map) takes."""
+
+    scan: LaserScan
+    estimate: PoseEstimate
+    node: bool  # becomes a graph node (a keyframe, with loop closure on)
+    drawn: bool  # drawn into the map (keyframes and every `integrate_every`-th scan, usable)
+
+
 class SlamSession:
-    """Front end plus back end for one robot's session (pure computation, no IO)."""
+    """One session's SLAM, offline and live alike: front end, back end and map (pure, no IO).
+
+    Per scan, `process` runs the two halves in turn:
+    - `track` (the front half): the front end's estimate, and the map rule: a scan is drawn
+      when it is usable (never `DEGENERATE`: its pose is only a prediction) and it is a
+      keyframe, the first scan, or `integrate_every` scans after the last one drawn;
+    - `integrate` (the back half): a keyframe becomes a graph node (loop search, iSAM2); a
+      drawn scan is ray-cast once at its front-end pose: with loop closure into the map chunk
+      of its latest node's stretch of travel (`maps.composed.ChunkedMap`, frozen once the next
+      stretch begins), without it into the one grid. Nothing per scan is kept.
+    The live service runs `track` on its per-scan path and `integrate` in a background thread
+    (`service.app.backend`): the same calls in the same order, so the same graph and map.
+    `map_image` composes the chunks at their anchors' current corrections; `finish` runs the
+    final search and batch optimisation and returns every scan's corrected pose.
+
+    `map_resolution_m` None: no map (the back end alone, as benchmarks use it);
+    `keep_trajectory` False: no per-scan record (the live service records its poses itself).
+    """
 
     def __init__(
         self,
         estimator_params: EstimatorParams | None = None,
         params: SlamParams | None = None,
-        frontend: FrontEnd | None = None,
+        frontend: Tracker | None = None,
+        *,
+        map_resolution_m: float | None = None,
+        integrate_every: int = DEFAULT_INTEGRATE_EVERY,
+        keep_trajectory: bool = True,
     ) -> None:
         self.params = params if params is not None else SlamParams()
-        self.frontend = frontend if frontend is not None else ManhattanEstimator(estimator_params)
+        self.frontend: Tracker = (
+            frontend if frontend is not None else ManhattanEstimator(estimator_params)
+        )
         self.backend = SlamBackend(self.params)
+        self.integrate_every = int(integrate_every)
+        self.map_resolution_m = map_resolution_m
+        self.keep_trajectory = keep_trajectory
+        # Front half: scans tracked, scans since the last one drawn.
+        self._tracked = 0
+        self._since_drawn = 0
+        # Back half.
         self._scan_node: list[int] = []  # per scan: its latest node (-1: none yet)
         self._scan_frontend: list[Pose2D] = []
+        # Drawn scans kept for drawing at corrected poses (loop closure): scan, pose, node.
+        # The map: with loop closure, chunks moved by their anchors' corrections; without,
+        # one grid at the front-end poses (no correction ever moves it).
+        self._grid: OccupancyGrid | None = None
+        self._chunks: ChunkedMap | None = None
+        if map_resolution_m is not None:
+            if self.params.loop_closure:
+                self._chunks = ChunkedMap(map_resolution_m)
+            else:
+                self._grid = OccupancyGrid(map_resolution_m)
+        self.integrate_ns: list[int] = []  # time of each scan drawn (`keep_trajectory` only)
 
     @property
     def graph(self) -> PoseGraph:
@@ -361,23 +438,60 @@ class SlamSession:
         return self.backend.node_frontend
 
     # ------------------------------------------------------------------ per scan
-    def process(self, scan: LaserScan) -> PoseEstimate:
+    def process(self, scan: LaserScan, seq: int = -1) -> PoseEstimate:
         """The front end's estimate for `scan`; a keyframe also becomes a graph node."""
-        estimate = self.frontend.process(scan)
-        self.observe(scan, estimate)
-        return estimate
+        tracked = self.track(scan)
+        self.integrate(tracked, seq)
+        return tracked.estimate
+
+    def track(self, scan: LaserScan) -> Tracked:
+        """The front half: the front end's estimate, and what the back half does with it."""
+        return self.select(scan, self.frontend.process(scan))
+
+    def select(self, scan: LaserScan, estimate: PoseEstimate) -> Tracked:
+        """The map rule and the node rule for an estimate (`track` without the front end)."""
+        self._tracked += 1
+        self._since_drawn += 1
+        usable = not estimate.flags & PoseFlag.DEGENERATE
+        due = 0 < self.integrate_every <= self._since_drawn
+        drawn = self.has_map and usable and (estimate.is_keyframe or due or self._tracked == 1)
+        if drawn:
+            self._since_drawn = 0
+        node = self.params.loop_closure and estimate.is_keyframe
+        return Tracked(scan, estimate, node, drawn)
+
+    def integrate(self, tracked: Tracked, seq: int = -1) -> bool:
+        """The back half: the node, the map; True when a loop closure was accepted."""
+        estimate = tracked.estimate
+        closure = False
+        if tracked.node:
+            closure = self.backend.add_node(
+                tracked.scan, estimate.pose, estimate.covariance, int(estimate.flags), seq
+            )
+        node = self.backend.node_count - 1
+        if self.keep_trajectory:
+            self._scan_node.append(node)
+            self._scan_frontend.append(estimate.pose)
+        if tracked.drawn:
+            t0 = time.perf_counter_ns()
+            if self._chunks is not None:
+                self._chunks.draw(tracked.scan, estimate.pose, node)
+            else:
+                assert self._grid is not None
+                self._grid.integrate(tracked.scan, estimate.pose)
+            if self.keep_trajectory:
+                self.integrate_ns.append(time.perf_counter_ns() - t0)
+        return closure
 
     def observe(self, scan: LaserScan, estimate: PoseEstimate) -> None:
-        """The back end's half of `process`, for callers that time the front end alone."""
-        if self.params.loop_closure and estimate.is_keyframe:
-            self.backend.add_node(scan, estimate.pose, estimate.covariance, int(estimate.flags))
-        self._scan_node.append(self.backend.node_count - 1)
-        self._scan_frontend.append(estimate.pose)
+        """The back half of `process` for an estimate made by the caller (timed apart)."""
+        self.integrate(self.select(scan, estimate))
 
     # ------------------------------------------------------------------ results
     def finish(self) -> list[Pose2D]:
-        """Final batch optimisation; returns the corrected pose of every scan processed."""
-        if self.params.loop_closure and self.backend.node_count:
+        """Final search and batch optimisation; the corrected pose of every scan processed
+        (with `keep_trajectory`)."""
+        if self.params.loop_closure and self.backend.node_count and not self.backend.finished:
             self.backend.finish()
         return self.corrected_poses()
 
@@ -393,3 +507,24 @@ class SlamSession:
         for node, pose in zip(self._scan_node, self._scan_frontend, strict=True):
             out.append(pose if node < 0 else corrections[node].compose(pose))
         return out
+
+    def map_image(self) -> GridImage:
+        """The map at the current corrections. With loop closure: the chunks (`ChunkedMap`)
+        composed, each moved by its anchor node's correction (optimised ∘ front-end⁻¹), a cost
+        that grows with the chunks, not the scans; without: the one grid."""
+        if self._chunks is not None:
+            return self._chunks.compose(self.backend.corrections())
+        if self._grid is None:
+            raise ValueError("this session keeps no map (map_resolution_m is None)")
+        return self._grid.snapshot()
+
+    @property
+    def has_map(self) -> bool:
+        return self._grid is not None or self._chunks is not None
+
+    @property
+    def map_bytes(self) -> int:
+        """The map's memory: its grid, or its chunks' tiles."""
+        if self._chunks is not None:
+            return self._chunks.nbytes
+        return self._grid.memory_bytes() if self._grid is not None else 0

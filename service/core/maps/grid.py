@@ -19,6 +19,9 @@ it would erase real obstacles. Open areas therefore stay unknown beyond the sens
 ``GridImage.occupancy`` row 0 is the LOWEST y (like a ROS ``nav_msgs/OccupancyGrid``); image
 writers flip it so north is up. ``origin_x_m, origin_y_m`` is the corner of cell (row 0, col 0).
 
+A finished map chunk (`maps.composed`) is frozen (`freeze`): its tiles kept in int8 steps,
+read-only, never integrated into again.
+
 Not thread-safe: one owner integrates and snapshots.
 """
 
@@ -30,7 +33,7 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
-from service.core.types import LaserScan, Pose2D
+from service.core.types import LaserScan, Pose2D, frozen_array
 
 TILE_SHIFT: Final = 6
 TILE_CELLS: Final = 1 << TILE_SHIFT  # 64 x 64 cells per tile (3.2 m at 0.05 m)
@@ -116,6 +119,9 @@ class OccupancyGrid:
         self._index_ti0 = 0
         self._index_tj0 = 0
         self.scans_integrated = 0
+        # Once frozen (`freeze`): the tiles as int8 steps of `_frozen_step`; `_store` empty.
+        self._frozen: npt.NDArray[np.int8] | None = None
+        self._frozen_step = 0.0
 
     @property
     def tile_count(self) -> int:
@@ -124,11 +130,14 @@ class OccupancyGrid:
 
     def memory_bytes(self) -> int:
         """Bytes held by the tile store (allocated capacity) and the tile index."""
-        return int(self._store.nbytes + self._index.nbytes)
+        frozen = self._frozen.nbytes if self._frozen is not None else 0
+        return int(self._store.nbytes + self._index.nbytes + frozen)
 
     # ------------------------------------------------------------------------------------
     def integrate(self, scan: LaserScan, pose: Pose2D) -> None:
         """Ray-cast one scan taken at ``pose`` (laser frame = robot frame) into the map."""
+        if self._frozen is not None:
+            raise ValueError("this grid is frozen: read-only")
         res = self.resolution_m
         valid = scan.valid_mask()
         beams = np.nonzero(valid)[0]
@@ -257,6 +266,30 @@ class OccupancyGrid:
         grown[:capacity] = self._store
         self._store = grown
 
+    def freeze(self) -> None:
+        """Never integrate again: the tiles kept are the allocated ones, as int8 steps of
+        max(-l_min, l_max) / 127 (a quarter of the memory; 0.028 at the defaults, a known cell
+        stays known), and the tile index is trimmed to the rows and columns that hold one;
+        both read-only (`frozen_array`: a checkpoint's array pack writes them once)."""
+        rows = np.nonzero((self._index != 0).any(axis=1))[0]
+        cols = np.nonzero((self._index != 0).any(axis=0))[0]
+        if rows.shape[0]:
+            self._index = self._index[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
+            self._index_ti0 += int(rows[0])
+            self._index_tj0 += int(cols[0])
+        else:
+            self._index = np.zeros((0, 0), dtype=np.int32)
+        self._index = frozen_array(self._index)
+        step = max(-self.l_min, self.l_max) / 127.0
+        cells = self._store[: self._n_tiles]
+        steps = np.rint(cells / np.float32(step))
+        tiny = (steps == 0.0) & (cells != 0.0)  # known, however close to even: kept known
+        steps[tiny] = np.sign(cells[tiny])
+        self._frozen = frozen_array(steps.astype(np.int8))
+        self._frozen_step = step
+        self._store = np.zeros((0, TILE_CELLS, TILE_CELLS), dtype=np.float32)
+        self._near_cache.clear()
+
     # ------------------------------------------------------------------------------------
     def log_odds(self) -> tuple[npt.NDArray[np.float32], int, int]:
         """Dense log-odds over the allocated tiles: (array, first cell row, first cell col)."""
@@ -265,7 +298,10 @@ class OccupancyGrid:
         if rows.shape[0] == 0:
             return np.zeros((0, 0), dtype=np.float32), 0, 0
         sub = self._index[rows[0] : rows[-1] + 1, cols[0] : cols[-1] + 1]
-        tiles = self._store[sub]  # (th, tw, 64, 64); missing tiles read slot 0 (zeros)
+        if self._frozen is not None:
+            tiles = self._frozen[sub].astype(np.float32) * np.float32(self._frozen_step)
+        else:
+            tiles = self._store[sub]  # (th, tw, 64, 64); missing tiles read slot 0 (zeros)
         th, tw = sub.shape
         dense = tiles.transpose(0, 2, 1, 3).reshape(th * TILE_CELLS, tw * TILE_CELLS)
         cell_i0 = (int(rows[0]) + self._index_ti0) * TILE_CELLS

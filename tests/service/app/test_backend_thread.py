@@ -10,8 +10,10 @@ import threading
 import numpy as np
 import pytest
 
+from clients.wire import PoseFlag
 from service.app.backend import BACKEND_NICE, BackendScheduler, LiveBackend
-from service.core.types import LaserScan, Pose2D
+from service.core.slam import SlamSession
+from service.core.types import LaserScan, Pose2D, PoseEstimate
 
 
 def _room_scan() -> LaserScan:
@@ -26,9 +28,12 @@ def _room_scan() -> LaserScan:
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="a thread's own nice is Linux's")
 def test_the_back_end_thread_runs_nicer_than_the_pose_path() -> None:
     scheduler = BackendScheduler()
-    backend = LiveBackend(0.05, scheduler=scheduler)
+    session = SlamSession(map_resolution_m=0.05, keep_trajectory=False)
+    backend = LiveBackend(session, scheduler=scheduler)
     try:
-        backend.submit(_room_scan(), Pose2D(0.0, 0.0, 0.0), np.eye(3).ravel() * 1e-4, 0, 0)
+        covariance = (1e-4, 0.0, 0.0, 0.0, 1e-4, 0.0, 0.0, 0.0, 1e-4)
+        estimate = PoseEstimate(1, Pose2D(0.0, 0.0, 0.0), 1.0, PoseFlag.NONE, True, covariance)
+        backend.submit(session.select(_room_scan(), estimate), 0)
         assert backend.wait_idle(30.0)
         assert backend.snapshot().nodes == 1
         thread = scheduler._thread

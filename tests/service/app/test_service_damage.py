@@ -492,8 +492,8 @@ def test_checkpoints_are_compressed_data_not_pickles(
     mapper = session._mapper
     assert mapper is not None
     assert session.wait_backend(60)
-    backend = mapper._backend.state(lambda tree: tree)  # type: ignore[attr-defined]  # in it too
-    pickled = len(pickle.dumps((mapper._estimator, mapper._grid, backend)))  # type: ignore[attr-defined]
+    queued = mapper._backend.state(lambda items: items)  # type: ignore[attr-defined]  # in it too
+    pickled = len(pickle.dumps((mapper._session, queued)))  # type: ignore[attr-defined]
     runtime.close()
     (path,) = (tmp_path / "data" / "sessions" / session.id).glob("checkpoint-*.mck")
     assert path.read_bytes().startswith(b"MMCKPT1\n")

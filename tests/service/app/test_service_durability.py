@@ -206,10 +206,10 @@ def test_restart_from_checkpoint_replays_only_the_tail(
 def test_checkpoints_write_frozen_data_once(
     tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch, mappers: int
 ) -> None:
-    """With loop closure, what never changes again (finished submaps, frozen map chunks, the
-    nodes' points) goes to the epoch's array pack once: a checkpoint appends what froze since
-    the one before, not the whole session. A restart restores from the pack; a damaged pack
-    makes its checkpoints restore by replay instead, and nothing is lost."""
+    """With loop closure, what never changes again (finished submaps, the nodes' points, the
+    frozen map chunks) goes to the epoch's array pack once: a checkpoint appends what froze
+    since the one before, not the whole session. A restart restores from the pack; a damaged
+    pack makes its checkpoints restore by replay instead, and nothing is lost."""
     monkeypatch.setattr(MappingSession, "checkpoint_every_scans", 400)
     data = tmp_path / "data"
     live = runtime_factory(data, mapper_processes=mappers)
@@ -217,15 +217,17 @@ def test_checkpoints_write_frozen_data_once(
     folder = data / "sessions" / session.id
     robot = SimRobot("r1")
     pack_sizes = []
-    for k in range(3):
+    for k in range(4):
         # Every 400th scan checkpoints (with mapper processes, before the next is forwarded).
         feed(live, robot, 400 if k else 401)
         packs = list(folder.glob("frozen-*.mpack"))
         assert len(packs) == 1
         pack_sizes.append(packs[0].stat().st_size)
-    assert 0 < pack_sizes[0] < pack_sizes[1] < pack_sizes[2]
-    # The third checkpoint appended less than the pack held: the first two's arrays stayed.
-    assert pack_sizes[2] - pack_sizes[1] < pack_sizes[1]
+    assert 0 < pack_sizes[0] < pack_sizes[1] < pack_sizes[2] < pack_sizes[3]
+    # The last checkpoint appended less than the pack held: the earlier arrays stayed. (Not
+    # the third: a map chunk freezes whole when the next stretch of travel begins, so what a
+    # checkpoint appends comes in lumps, a stretch later when the back end lags.)
+    assert pack_sizes[3] - pack_sizes[2] < pack_sizes[2]
     assert statecodec.check_pack(packs[0]).damaged_at is None
     newest = max(folder.glob("checkpoint-*.mck"))
     _, state = checkpoint.read(newest)
@@ -247,7 +249,7 @@ def test_checkpoints_write_frozen_data_once(
     damaged = tmp_path / "damaged"
     shutil.copytree(crash, damaged)
     second = runtime_factory(crash)
-    assert len(estimated) == 1  # from the checkpoint at scan 1,200
+    assert len(estimated) == 1  # from the checkpoint at scan 1,600
     assert_same_session(expected, second.sessions.get(session.id))
     second.close()
 
@@ -259,7 +261,7 @@ def test_checkpoints_write_frozen_data_once(
     assert statecodec.check_pack(pack).damaged_at == 0
     third = runtime_factory(damaged)
     restored = third.sessions.get(session.id)
-    assert len(estimated) == 1 + 1201  # replayed from the recording
+    assert len(estimated) == 1 + 1601  # replayed from the recording
     assert_same_session_data(expected, restored)
     assert restored.damage.checkpoints_rejected == 2
     assert restored.damage.records_lost == 0

@@ -23,9 +23,11 @@ from svc_testkit import (  # noqa: F401  # *_fixture: pytest fixtures used by na
 from clients.keyexpr import pose_wildcard, scan_key
 from clients.wire import Pose, decode_pose, encode_scan
 from service.app.fanout import PoseFanout, PoseStream
-from service.app.mapper import Engine, default_estimator_factory, local_mapper_factory
+from service.app.mapper import Engine, local_mapper_factory
 from service.app.metrics import Metrics
 from service.app.runtime import MappingRuntime
+from service.core.frontend.estimator import ManhattanEstimator
+from service.core.frontend.params import EstimatorParams
 from service.core.types import LaserScan, PoseEstimate
 
 
@@ -92,7 +94,7 @@ class BlockingEstimator:
     """The real estimator behind a gate, to hold a worker busy."""
 
     def __init__(self, gate: threading.Event, entered: threading.Event) -> None:
-        self._inner = default_estimator_factory(True)
+        self._inner = ManhattanEstimator(EstimatorParams(use_odometry=True))
         self._gate = gate
         self._entered = entered
 
@@ -141,7 +143,7 @@ class RecordingEstimator:
     """The real estimator, noting which robot each scan belonged to; the first waits for a gate."""
 
     def __init__(self, robot_id: str, order: list[str], gate: threading.Event) -> None:
-        self._inner = default_estimator_factory(True)
+        self._inner = ManhattanEstimator(EstimatorParams(use_odometry=True))
         self._robot_id = robot_id
         self._order = order
         self._gate = gate

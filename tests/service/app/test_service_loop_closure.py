@@ -41,7 +41,7 @@ from service.app.api.app import create_app
 from service.app.foxglove import session_loop_closures
 from service.app.runtime import MappingRuntime
 from service.app.settings import IngestSettings, ServiceSettings, StorageSettings
-from service.core.backend.graph import GraphParams
+from service.core.backend.params import GraphParams
 
 SEED = 1
 SPEED_MPS = 2.0  # one loop in ~46 s of scans (1,830): the closure comes back at the start
@@ -117,7 +117,10 @@ def test_loop_closure_in_process(runtime: MappingRuntime) -> None:
         assert mapper is not None
         assert mapper.wait_backend(30)  # type: ignore[attr-defined]  # every map drawn
         before_png = client.get(f"/sessions/{sid}/map.pgm").content
-        revision = graph["revision"]
+        # The back end's own revision now: maps drawn since `closed` bumped it.
+        latest = mapper.graph()
+        assert latest is not None
+        revision = latest.revision
         _pull_last_node(runtime, sid, 0.3)
 
         def after_closure() -> tuple[dict[str, Any], dict[int, Any], dict[str, Any]] | None:
@@ -174,7 +177,7 @@ def test_loop_closure_in_process(runtime: MappingRuntime) -> None:
         assert now["loop_closures"]["solver_restarts"] == 0
         assert f'mapping_graph_solver_restarts{{session="{sid}"}} 0' in metrics
 
-        # The map is the chunks composed at the optimised poses (drawn by the back end).
+        # The map is the core's, drawn at the optimised poses (by the back end's thread).
         yaml_text = client.get(f"/sessions/{sid}/map.yaml").text
         assert "resolution: 0.05" in yaml_text
         png = client.get(f"/sessions/{sid}/map.png?trajectory=true").content

@@ -58,6 +58,35 @@ def test_front_end_alone_round_trips_its_grid() -> None:
     np.testing.assert_array_equal(a.snapshot().occupancy, b.snapshot().occupancy)
 
 
+def test_the_matcher_front_end_round_trips_too() -> None:
+    """The live service's front end chosen by name (`Engine.front_end`), as the command line's."""
+    robot = SimRobot("r1")
+    scans = [robot.next_scan() for _ in range(80)]
+    a = LocalMapper(Engine(front_end="matcher", loop_closure=False), True, 0.05)
+    for scan in scans[:50]:
+        a.map_scan(scan)
+    b = LocalMapper(Engine(front_end="matcher", loop_closure=False), True, 0.05)
+    b.restore(a.state())
+    for scan in scans[50:]:
+        assert a.map_scan(scan) == b.map_scan(scan)
+    np.testing.assert_array_equal(a.snapshot().occupancy, b.snapshot().occupancy)
+    manhattan = LocalMapper(Engine(loop_closure=False), True, 0.05)
+    with pytest.raises(statecodec.StateCodecError, match="another front end"):
+        manhattan.restore(a.state())
+
+
+@pytest.mark.parametrize(
+    "old", [(1, 2), {"version": 2, "estimator": None}, {"version": 3, "session": None}]
+)
+def test_older_state_versions_are_refused_by_name(old: object) -> None:
+    """Versions 1 to 3 held the map another way: refused (the session replays instead)."""
+    mapper = LocalMapper(Engine(loop_closure=False), True, 0.05)
+    data = statecodec.encode(old, ("service.core",))
+    refused = r"version [123] is not 4 \(versions 1 to 3 "
+    with pytest.raises(statecodec.StateCodecError, match=refused):
+        mapper.restore(data)
+
+
 def test_values_containers_and_shared_references() -> None:
     shared = np.arange(6, dtype=np.float32).reshape(2, 3)
     inner: list[object] = [1, 2.5, None, "x", True, b"\x00\xff"]

@@ -12,8 +12,9 @@ import pytest
 from scenes import MODEL, scan_of, world_of
 
 from sensor_agent.sim.world import World, simulate_scan
-from service.core.backend.graph import GraphParams, PoseGraph
+from service.core.backend.graph import PoseGraph
 from service.core.backend.loops import LoopParams, verify
+from service.core.backend.params import GraphParams
 from service.core.maps.submaps import Submap, SubmapBuilder, SubmapParams
 from service.core.types import LaserScan, Pose2D
 
