@@ -21,8 +21,12 @@ independent evidence (Cartographer scales its occupied-space residuals the same 
    and at one scan per 0.3 m it is wide.
 2. *Refine* (hector's `ScanMatcher`, Cartographer's `CeresScanMatcher2D`): Gauss-Newton on the
    bilinear field from the search's best pose, priors as residuals.
-3. *Covariance*: the inverse of the refinement's Hessian. A corridor has no gradient along its
-   axis, so there only the prior's σ remains: long along, short across.
+3. *The weakest axis from the response* (Olson's covariance, along one direction): along the
+   direction the Hessian says least about, the scan's cost is read at whole cells over the
+   prior's window; that response's spread is the scan's information there and its mean, fused
+   with the prediction, the estimate there. Elsewhere the Hessian stands.
+4. *Covariance*: the inverse of the Hessian so corrected. A plain corridor gives the scan no
+   information along its axis, so there only the prior's σ remains: long along, short across.
 """
 
 from __future__ import annotations
@@ -285,7 +289,75 @@ def refine(
 def match(
     grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
 ) -> MatchResult:
-    """Search, then refine: the scan's pose in the map frame and how sure it is."""
+    """Search, then refine, then read the weakest axis off the response: the scan's pose in the
+    map frame and how sure it is."""
     start, cells = search(grid, points_xy_m, priors, opts)
     pose, covariance, h_scan, score = refine(grid, points_xy_m, start, priors, opts)
+    shift_m, h_weak = weakest_axis_from_response(grid, points_xy_m, pose, priors, h_scan, opts=opts)
+    if h_weak is not h_scan:
+        pose = Pose2D(pose.x_m + float(shift_m[0]), pose.y_m + float(shift_m[1]), pose.theta_rad)
+        covariance = np.linalg.inv(np.linalg.inv(covariance) - h_scan + h_weak)
+        covariance = 0.5 * (covariance + covariance.T)
+        h_scan = h_weak
     return MatchResult(pose, covariance, h_scan, score, cells)
+
+
+def weakest_axis_from_response(
+    grid: LikelihoodGrid,
+    points_xy_m: FloatArray,
+    pose: Pose2D,
+    priors: Priors,
+    h_scan: FloatArray,
+    *,
+    opts: MatchOptions,
+) -> tuple[FloatArray, FloatArray]:
+    """(shift of the pose in x, y; the scan's information) along the scan's weakest direction of
+    translation, from the correlative response there (Olson 2009) where it says less than the
+    Hessian.
+
+    Along a corridor the Hessian measures the curvature of the nearest ripple of the field (no
+    wall is drawn perfectly straight), not how well the scan pins the pose: trusted, each scan's
+    ripple becomes a velocity, and the estimate random-walks along the corridor. The response,
+    exp(-cost/2) at whole-cell steps over ±3σ of the prior along that direction (prior
+    included), sees the whole window: its mean is the estimate there and its spread, less the
+    prior's information, the scan's. A narrow peak gives back the Hessian's value (the smaller
+    of the two is kept)."""
+    evals, evecs = np.linalg.eigh(h_scan[:2, :2])
+    u = evecs[:, 0]
+    info_pred = np.linalg.inv(priors.cov_pred)[:2, :2]
+    prior_u = float(u @ info_pred @ u)
+    res = grid.resolution_m
+    half_m = min(
+        max(opts.search_sigmas / math.sqrt(max(prior_u, 1e-12)), 2.0 * res), opts.search_max_m
+    )
+    steps = math.ceil(half_m / res)
+    offsets = res * np.arange(-steps, steps + 1, dtype=np.float64)
+    pts = points_xy_m
+    if pts.shape[0] > opts.search_points:
+        pts = pts[np.linspace(0, pts.shape[0] - 1, opts.search_points).astype(np.int64)]
+    costs = grid.residual_costs(opts.max_residual_sigmas)
+    rows_n, cols_n = costs.shape
+    q = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+    cols = np.floor((q[None, :, 0] + offsets[:, None] * u[0] - grid.origin_m[0]) / res)
+    rows = np.floor((q[None, :, 1] + offsets[:, None] * u[1] - grid.origin_m[1]) / res)
+    inside = (rows >= 0) & (rows < rows_n) & (cols >= 0) & (cols < cols_n)
+    r = np.clip(rows, 0, rows_n - 1).astype(np.int64)
+    c = np.clip(cols, 0, cols_n - 1).astype(np.int64)
+    looked_up = np.where(inside, costs[r, c], off_surface_cost(opts.max_residual_sigmas))
+    scan_cost = opts.scan_weight * looked_up.mean(axis=1)
+    weight = np.exp(-0.5 * (scan_cost - scan_cost.min()))
+    weight /= weight.sum()
+    mean_m = float(weight @ offsets)
+    var_m2 = float(weight @ (offsets - mean_m) ** 2) + res * res / 12.0
+    # A flat response over the window still has the window's spread: that much is not the scan's.
+    info_u = max(0.0, 1.0 / var_m2 - 3.0 / (half_m * half_m))
+    # Along u, the scan's response (mean, info_u) and the prediction fused as two Gaussians.
+    d = np.array([priors.predicted.x_m - pose.x_m, priors.predicted.y_m - pose.y_m])
+    pred_u = float(u @ d)
+    mean_m = (prior_u * pred_u + info_u * mean_m) / (prior_u + info_u)
+    if info_u >= evals[0]:
+        return np.zeros(2), h_scan
+    e = np.array([u[0], u[1], 0.0])
+    h = h_scan - (evals[0] - info_u) * np.outer(e, e)
+    w_h, v_h = np.linalg.eigh(0.5 * (h + h.T))
+    return mean_m * u, np.asarray((v_h * np.maximum(w_h, 0.0)) @ v_h.T)

@@ -48,8 +48,8 @@ class MatcherParams:
 
     # --- the scan
     voxel_m: float = 0.05  # points matched: one per voxel of this size
-    max_range_m: float = 20.0  # returns beyond this are not used
-    reach_margin_m: float = 1.0  # matched points stay this far inside the sensor's range
+    max_range_m: float = 30.0  # returns beyond this are not used (the UTM-30LX's reach)
+    matched_reach: float = 0.75  # points matched within this share of the inserted reach
     min_points: int = 20  # fewer: DEGENERATE, the pose is the prediction
     # --- submaps
     resolution_m: float = 0.05  # likelihood grid cell
@@ -64,8 +64,12 @@ class MatcherParams:
     use_odometry: bool = True  # odometry (when the scan carries it) is the motion prior
     max_extrapolation_s: float = 0.5  # constant velocity is extrapolated at most this long
     velocity_window_s: float = 0.2  # the velocity is measured over at least this much time
-    accel_sigma_m_s2: float = 1.0  # the velocity's random walk (a Kalman filter) ...
-    angular_accel_sigma_deg_s2: float = 90.0  # ... and the turn rate's
+    # The velocity's random walk (a Kalman filter): along the robot's heading a speed changes
+    # slowly; across it a weave or a holonomic base jumps. One σ for both would let a sideways
+    # jump, measured well, leak into an unmeasured speed along a corridor.
+    forward_accel_sigma_m_s2: float = 0.3
+    lateral_accel_sigma_m_s2: float = 2.0
+    angular_accel_sigma_deg_s2: float = 90.0  # the turn rate's
     gap_speed_m_s: float = 0.5  # σ grows by this × the gap beyond max_extrapolation_s ...
     gap_turn_rate_deg_s: float = 60.0  # ... and σ_θ by this
     position_floor_m: float = 0.01
@@ -85,7 +89,7 @@ class FrontEndStats:
     stamp_backwards: int = 0  # scans not after the previous one: not matched
 
 
-STATE_VERSION = 2  # of `MatcherState`: a checkpoint of another version is refused, not guessed
+STATE_VERSION = 3  # of `MatcherState`: a checkpoint of another version is refused, not guessed
 
 
 @dataclass
@@ -97,7 +101,9 @@ class MatcherState:
     stamp_ns: int | None
     velocity: FloatArray  # (vx, vy, ω) per second, robot frame
     velocity_cov: FloatArray
-    velocity_anchor: tuple[Pose2D, int] | None  # (pose, stamp_ns) the velocity was last measured at
+    velocity_anchor: tuple[Pose2D, int, FloatArray] | None  # (pose, stamp_ns, pose_cov) of the
+    # velocity's last measurement
+    pose_cov: FloatArray  # the pose's covariance against the submap (map axes)
     odom: Pose2D | None
     submaps: list[LikelihoodGrid]
     keyframe_pose: Pose2D | None
@@ -162,7 +168,8 @@ class ScanMatcherFrontEnd:
         self._stamp_ns: int | None = None
         self._velocity = np.zeros(3)  # (vx, vy, ω) per second, robot frame
         self._velocity_cov = _UNKNOWN_VELOCITY_COV  # its covariance
-        self._velocity_anchor: tuple[Pose2D, int] | None = None
+        self._velocity_anchor: tuple[Pose2D, int, FloatArray] | None = None
+        self._pose_cov = np.zeros((3, 3))
         self._odom: Pose2D | None = None
         self._submaps: list[LikelihoodGrid] = []
         self._keyframe_pose: Pose2D | None = None
@@ -182,6 +189,7 @@ class ScanMatcherFrontEnd:
             self._velocity,
             self._velocity_cov,
             self._velocity_anchor,
+            self._pose_cov,
             self._odom,
             self._submaps,
             self._keyframe_pose,
@@ -201,7 +209,7 @@ class ScanMatcherFrontEnd:
         self.params = MatcherParams(**saved["params"])
         self._pose, self._stamp_ns = state.pose, state.stamp_ns
         self._velocity, self._velocity_cov = state.velocity, state.velocity_cov
-        self._velocity_anchor = state.velocity_anchor
+        self._velocity_anchor, self._pose_cov = state.velocity_anchor, state.pose_cov
         self._odom, self._submaps = state.odom, state.submaps
         self._keyframe_pose, self._cov_since_keyframe = (
             state.keyframe_pose,
@@ -234,9 +242,10 @@ class ScanMatcherFrontEnd:
     # ------------------------------------------------------------------ steps
     def _points(self, scan: LaserScan, pts: FloatArray) -> FloatArray:
         """The returns `pts` (laser frame) that are matched: within reach, one per voxel."""
-        # Matched within the sensor's reach less a margin: the submap's walls end where the
-        # last keyframes' reach ended, and a point past that end would pull the scan back.
-        reach_m = min(self.params.max_range_m, scan.range_max_m) - self.params.reach_margin_m
+        # Matched well inside the reach the submap was drawn to: its walls end where the
+        # keyframes' reach ended, and a point past that end, within the search window, would
+        # pull the scan back along a corridor.
+        reach_m = self.params.matched_reach * min(self.params.max_range_m, scan.range_max_m)
         keep = np.hypot(pts[:, 0], pts[:, 1]) <= reach_m
         return voxel_thin(pts[keep], self.params.voxel_m)
 
@@ -306,7 +315,7 @@ class ScanMatcherFrontEnd:
         prior_cov = self._cov_since_keyframe + cov_pred
         cov = np.linalg.inv(np.linalg.inv(prior_cov) + h_scan)
         cov = 0.5 * (cov + cov.T)
-        self._update_motion(scan, pose, h_scan)
+        self._update_motion(scan, pose, h_scan, cov_pred)
         keyframe = self._is_keyframe(pose)
         if keyframe:
             self._insert(scan, returns, pose)
@@ -328,6 +337,7 @@ class ScanMatcherFrontEnd:
         """The prediction, flagged: time and pose move on, nothing is learnt from the scan."""
         self.stats.degenerate += 1
         self._cov_since_keyframe = self._cov_since_keyframe + cov_pred
+        self._pose_cov = self._pose_cov + cov_pred
         if self._pose is not None:
             self._pose = predicted
         if self._stamp_ns is None or scan.stamp_ns > self._stamp_ns:
@@ -347,35 +357,40 @@ class ScanMatcherFrontEnd:
 
     def _velocity_noise(self, gap_s: float) -> FloatArray:
         p = self.params
-        a, alpha = p.accel_sigma_m_s2 * gap_s, math.radians(p.angular_accel_sigma_deg_s2) * gap_s
-        return np.diag([a * a, a * a, alpha * alpha])
+        fwd, lat = p.forward_accel_sigma_m_s2 * gap_s, p.lateral_accel_sigma_m_s2 * gap_s
+        alpha = math.radians(p.angular_accel_sigma_deg_s2) * gap_s
+        return np.diag([fwd * fwd, lat * lat, alpha * alpha])
 
-    def _update_motion(self, scan: LaserScan, pose: Pose2D, h_scan: FloatArray) -> None:
+    def _update_motion(
+        self, scan: LaserScan, pose: Pose2D, h_scan: FloatArray, cov_pred: FloatArray
+    ) -> None:
         """Kalman step of the velocity: the motion since the previous step, over at least
         `velocity_window_s` (real logs hold scans 1 ms apart, over which a match's noise would
-        be a huge speed), counts as much as the scan constrained it. Along a corridor the scan
-        says nothing, so the velocity keeps its prediction there (a slipped match does not
-        become a speed)."""
+        be a huge speed), counts as much as both its ends are known against the submap. Along
+        a corridor the scan says nothing, so the velocity keeps its prediction there (a slipped
+        match does not become a speed); and where a door pins the pose again after a plain
+        stretch, the correction says where the robot is, not how fast it went (the anchor's
+        position along the corridor was loose)."""
         p = self.params
+        self._pose_cov = np.linalg.inv(np.linalg.inv(self._pose_cov + cov_pred) + h_scan)
         anchor = self._velocity_anchor
         gap_s = 0.0 if self._stamp_ns is None else (scan.stamp_ns - self._stamp_ns) * 1e-9
         if anchor is None or gap_s > p.max_extrapolation_s:
             if anchor is not None:
                 self._velocity = np.zeros(3)  # after a pause: at rest until it moves again
                 self._velocity_cov = _UNKNOWN_VELOCITY_COV
-            self._velocity_anchor = (pose, scan.stamp_ns)
+            self._velocity_anchor = (pose, scan.stamp_ns, self._pose_cov)
         elif (span_s := (scan.stamp_ns - anchor[1]) * 1e-9) >= p.velocity_window_s:
             d = anchor[0].between(pose)
             measured = np.array([d.x_m, d.y_m, d.theta_rad]) / span_s
             c, s = math.cos(anchor[0].theta_rad), math.sin(anchor[0].theta_rad)
             rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # map -> robot
-            info = rot @ h_scan @ rot.T
-            r = 2.0 * np.linalg.inv(info + np.eye(3) * 1e-6) / (span_s * span_s)
+            r = rot @ (anchor[2] + self._pose_cov) @ rot.T / (span_s * span_s)
             p_v = self._velocity_cov + self._velocity_noise(span_s)
             gain = p_v @ np.linalg.inv(p_v + r)
             self._velocity = self._velocity + gain @ (measured - self._velocity)
             self._velocity_cov = (np.eye(3) - gain) @ p_v
-            self._velocity_anchor = (pose, scan.stamp_ns)
+            self._velocity_anchor = (pose, scan.stamp_ns, self._pose_cov)
         self._pose = pose
         self._stamp_ns = scan.stamp_ns
         if scan.odom is not None:
