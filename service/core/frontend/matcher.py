@@ -296,8 +296,8 @@ def match(
     shift_m, h_weak = weakest_axis_from_response(grid, points_xy_m, pose, priors, h_scan, opts=opts)
     if h_weak is not h_scan:
         pose = Pose2D(pose.x_m + float(shift_m[0]), pose.y_m + float(shift_m[1]), pose.theta_rad)
-        covariance = np.linalg.inv(np.linalg.inv(covariance) - h_scan + h_weak)
-        covariance = 0.5 * (covariance + covariance.T)
+        posterior = np.linalg.inv(np.linalg.inv(covariance) - h_scan + h_weak)
+        covariance = np.asarray(0.5 * (posterior + posterior.T), dtype=np.float64)
         h_scan = h_weak
     return MatchResult(pose, covariance, h_scan, score, cells)
 

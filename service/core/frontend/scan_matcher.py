@@ -372,7 +372,9 @@ class ScanMatcherFrontEnd:
         stretch, the correction says where the robot is, not how fast it went (the anchor's
         position along the corridor was loose)."""
         p = self.params
-        self._pose_cov = np.linalg.inv(np.linalg.inv(self._pose_cov + cov_pred) + h_scan)
+        self._pose_cov = np.asarray(
+            np.linalg.inv(np.linalg.inv(self._pose_cov + cov_pred) + h_scan), dtype=np.float64
+        )
         anchor = self._velocity_anchor
         gap_s = 0.0 if self._stamp_ns is None else (scan.stamp_ns - self._stamp_ns) * 1e-9
         if anchor is None or gap_s > p.max_extrapolation_s:
