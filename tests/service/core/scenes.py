@@ -28,6 +28,20 @@ def world_of(segments: list[list[float]], width_m: float, height_m: float) -> Wo
     )
 
 
+# An 8 × 6 m room with a box and a stub wall.
+ROOM = world_of(
+    [
+        [0, 0, 8, 0], [8, 0, 8, 6], [8, 6, 0, 6], [0, 6, 0, 0],
+        [5, 4, 5.6, 4], [5.6, 4, 5.6, 4.8], [5.6, 4.8, 5, 4.8], [5, 4.8, 5, 4],
+        [2, 0, 2, 1.5],
+    ],
+    60.0,
+    60.0,
+)  # fmt: skip
+# 180 m long, 2 m wide: no end in range
+CORRIDOR = world_of([[-90, 0, 90, 0], [-90, 2, 90, 2]], 60.0, 60.0)
+
+
 def scan_of(world: World, pose: Pose2D, rng: np.random.Generator, stamp_ns: int = 0) -> LaserScan:
     """One UTM-30LX scan of `world` from `pose`."""
     sample = simulate_scan(world, pose, MODEL, rng)

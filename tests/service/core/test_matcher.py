@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from scenes import MODEL, grid_of, matched_points, scan_of, world_of
+from scenes import CORRIDOR, MODEL, ROOM, grid_of, matched_points, scan_of, world_of
 
 from clients.wire import PoseFlag
 from service.core.frontend.matcher import MatchOptions, Priors, match
@@ -19,19 +19,6 @@ from service.core.frontend.walls import WallOptions, WallState, heading_prior, m
 from service.core.types import LaserScan, Pose2D
 
 pytestmark = pytest.mark.timeout(120)
-
-
-ROOM = world_of(
-    [
-        [0, 0, 8, 0], [8, 0, 8, 6], [8, 6, 0, 6], [0, 6, 0, 0],
-        [5, 4, 5.6, 4], [5.6, 4, 5.6, 4.8], [5.6, 4.8, 5, 4.8], [5, 4.8, 5, 4],
-        [2, 0, 2, 1.5],
-    ],
-    60.0,
-    60.0,
-)  # fmt: skip
-# 180 m long, 2 m wide: no end in range
-CORRIDOR = world_of([[-90, 0, 90, 0], [-90, 2, 90, 2]], 60.0, 60.0)
 
 
 @pytest.mark.parametrize("shift", [(0.12, -0.07, 2.0), (-0.2, 0.15, -4.0), (0.03, 0.01, 0.3)])
