@@ -3,6 +3,8 @@ this folder on the path for the tests in it)."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from sensor_agent.sim.world import LaserModel, World, simulate_scan
@@ -62,3 +64,19 @@ def grid_of(scans: list[tuple[LaserScan, Pose2D]]) -> LikelihoodGrid:
 def matched_points(scan: LaserScan) -> np.ndarray:
     """The points of `scan` the front end matches (within reach, one per voxel)."""
     return ScanMatcherFrontEnd()._points(scan, scan.points_xy_m())
+
+
+def bad_scan(kind: str, stamp_ns: int, n: int) -> LaserScan:
+    """A scan no front end can match, of this kind, with `n` beams where the kind has any."""
+    ranges = {
+        "empty": np.zeros(0),
+        "max_range": np.full(n, MODEL.range_max_m),
+        "nan": np.full(n, np.nan),
+        "one_beam": np.array([2.0]),
+        "inf": np.full(n, np.inf),
+        "huge": np.full(n, 1e300),
+    }[kind]
+    range_max_m = math.inf if kind == "huge" else MODEL.range_max_m  # (1e300 is then valid)
+    return LaserScan(
+        stamp_ns, MODEL.angle_min_rad, MODEL.angle_increment_rad, ranges, 0.1, range_max_m
+    )

@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from scenes import CORRIDOR, MODEL, ROOM, grid_of, matched_points, scan_of, world_of
+from scenes import CORRIDOR, ROOM, bad_scan, grid_of, matched_points, scan_of, world_of
 
 from clients.wire import PoseFlag
 from service.core.frontend.matcher import MatchOptions, Priors, match
 from service.core.frontend.scan_matcher import STATE_VERSION, MatcherParams, ScanMatcherFrontEnd
 from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
-from service.core.types import LaserScan, Pose2D
+from service.core.types import Pose2D
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -135,17 +135,6 @@ def test_the_front_end_follows_a_robot_through_a_room() -> None:
         assert not est.flags & PoseFlag.DEGENERATE
 
 
-def _bad_scan(kind: str, stamp_ns: int, n: int) -> LaserScan:
-    ranges = {
-        "empty": np.zeros(0),
-        "max_range": np.full(n, MODEL.range_max_m),
-        "nan": np.full(n, np.nan),
-        "one_beam": np.array([2.0]),
-        "inf": np.full(n, np.inf),
-    }[kind]
-    return LaserScan(stamp_ns, MODEL.angle_min_rad, MODEL.angle_increment_rad, ranges, 0.1, 30.0)
-
-
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     kind=st.sampled_from(["empty", "max_range", "nan", "one_beam", "inf", "backwards"]),
@@ -164,7 +153,7 @@ def test_bad_scans_return_the_prediction_flagged_and_never_raise(kind: str, n: i
         assert fe.stats.stamp_backwards == 1
         assert est.pose == last.pose  # not matched: time does not go back
     else:
-        est = fe.process(_bad_scan(kind, 400_000_000, n))
+        est = fe.process(bad_scan(kind, 400_000_000, n))
         # The prediction: one more step of the motion so far, along x.
         assert abs(est.y_m - last.y_m) < 0.02
         assert est.x_m >= last.x_m - 0.02

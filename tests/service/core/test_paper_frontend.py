@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from scenes import CORRIDOR, MODEL, ROOM, scan_of
+from scenes import CORRIDOR, ROOM, bad_scan, scan_of
 
 from clients.wire import PoseFlag
 from service.core.frontend.paper import PaperFrontEnd, PaperOptions, wall_angle
 from service.core.slam import FRONT_ENDS, make_frontend
-from service.core.types import LaserScan, Pose2D, wrap_angle
+from service.core.types import Pose2D, wrap_angle
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -103,21 +103,6 @@ def test_a_plain_corridor_is_flagged_ambiguous_and_uncertain_along_it() -> None:
     assert est.quality < 0.5
 
 
-def _bad_scan(kind: str, stamp_ns: int, n: int) -> LaserScan:
-    ranges = {
-        "empty": np.zeros(0),
-        "max_range": np.full(n, MODEL.range_max_m),
-        "nan": np.full(n, np.nan),
-        "one_beam": np.array([2.0]),
-        "inf": np.full(n, np.inf),
-        "huge": np.full(n, 1e300),
-    }[kind]
-    range_max_m = math.inf if kind == "huge" else MODEL.range_max_m  # (1e300 is then valid)
-    return LaserScan(
-        stamp_ns, MODEL.angle_min_rad, MODEL.angle_increment_rad, ranges, 0.1, range_max_m
-    )
-
-
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     kind=st.sampled_from(["empty", "max_range", "nan", "one_beam", "inf", "huge", "backwards"]),
@@ -137,7 +122,7 @@ def test_bad_scans_return_the_last_pose_flagged_and_never_raise(kind: str, n: in
         est = fe.process(scan_of(ROOM, Pose2D(2.1, 3.0, 0.0), rng, stamp_ns=10**8))
         assert fe.stamp_backwards == 1
     else:
-        est = fe.process(_bad_scan(kind, 4 * 10**8, n))
+        est = fe.process(bad_scan(kind, 4 * 10**8, n))
     assert est.pose == last.pose
     assert est.flags & PoseFlag.DEGENERATE
     assert not est.is_keyframe
