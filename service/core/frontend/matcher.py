@@ -91,6 +91,14 @@ def _wall_cost_weight(priors: Priors, theta_rad: float, huber: float) -> tuple[f
     return 2.0 * huber * a - huber * huber, z, huber / a
 
 
+def _scored_points(points_xy_m: FloatArray, opts: MatchOptions) -> FloatArray:
+    """The scan points the correlative steps score: at most `search_points`, evenly spaced."""
+    n = points_xy_m.shape[0]
+    if n <= opts.search_points:
+        return points_xy_m
+    return points_xy_m[np.linspace(0, n - 1, opts.search_points).astype(np.int64)]
+
+
 def search(
     grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
 ) -> tuple[Pose2D, int]:
@@ -101,9 +109,7 @@ def search(
     h, w = costs.shape
     if not h or not w or points_xy_m.shape[0] == 0:
         return priors.predicted, 0
-    pts = points_xy_m
-    if pts.shape[0] > opts.search_points:
-        pts = pts[np.linspace(0, pts.shape[0] - 1, opts.search_points).astype(np.int64)]
+    pts = _scored_points(points_xy_m, opts)
     thetas, half_rows, half_cols = _window(grid, pts, priors, opts)
     lattice = Lattice(
         thetas_rad=thetas,
@@ -167,9 +173,7 @@ def _brute_force_search(
     h, w = costs.shape
     if not h or not w:
         return priors.predicted, 0
-    pts = points_xy_m
-    if pts.shape[0] > opts.search_points:
-        pts = pts[np.linspace(0, pts.shape[0] - 1, opts.search_points).astype(np.int64)]
+    pts = _scored_points(points_xy_m, opts)
     res = grid.resolution_m
     thetas, ny, nx = _window(grid, pts, priors, opts)
     dj = np.arange(-nx, nx + 1)
@@ -332,9 +336,7 @@ def weakest_axis_from_response(
     )
     steps = math.ceil(half_m / res)
     offsets = res * np.arange(-steps, steps + 1, dtype=np.float64)
-    pts = points_xy_m
-    if pts.shape[0] > opts.search_points:
-        pts = pts[np.linspace(0, pts.shape[0] - 1, opts.search_points).astype(np.int64)]
+    pts = _scored_points(points_xy_m, opts)
     costs = grid.residual_costs(opts.max_residual_sigmas)
     rows_n, cols_n = costs.shape
     q = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
