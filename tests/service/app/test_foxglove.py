@@ -40,10 +40,21 @@ def _publish_scans(endpoint: str, robot: SimRobot, stop: threading.Event) -> Non
             peer.put(scan_key(robot.robot_id), encode_scan(robot.next_scan()))
 
 
-def test_foxglove_client_decodes_grid_pose_scan_and_transform(tmp_path: Path) -> None:
+WATCHED = f"a viewer watches {ROBOT}'s scans"
+RELEASED = f"no viewer of {ROBOT}'s scans"
+
+
+# Both layouts: one process (the scans are in the service's process), and the scans taken in by
+# a mapper process (the service's process takes a watched robot's scans from Zenoh for display).
+@pytest.mark.parametrize(
+    "layout", [[], ["--mapper-processes", "1"]], ids=["one-process", "mapper-processes"]
+)
+def test_foxglove_client_decodes_grid_pose_scan_and_transform(
+    tmp_path: Path, layout: list[str]
+) -> None:
     fox_port = free_port()
-    svc = ServiceProc(tmp_path / "data")
-    svc.start(args=["--foxglove-port", str(fox_port)])
+    svc = ServiceProc(tmp_path / "data", extra_args=layout)
+    svc.start(args=["--foxglove-port", str(fox_port)], timeout_s=60)
     stop = threading.Event()
     feeder: threading.Thread | None = None
     try:
@@ -52,8 +63,15 @@ def test_foxglove_client_decodes_grid_pose_scan_and_transform(tmp_path: Path) ->
         feeder = threading.Thread(target=_publish_scans, args=(svc.zenoh_endpoint, robot, stop))
         feeder.start()
         wait_for(lambda: svc.json(f"/sessions/{sid}")["poses"] >= 20, 60, "20 poses")
+        # Nobody watches yet: the service's process takes no scan key for the view.
+        assert WATCHED not in svc.log_path.read_text()
         topics = {f"/{ROBOT}/map", f"/{ROBOT}/pose", f"/{ROBOT}/scan", "/tf"}
         got = fetch(f"ws://127.0.0.1:{fox_port}", topics | {f"/{ROBOT}/trajectory"})
+        if layout:  # the viewer is gone: the scan key is released again
+            wait_for(lambda: RELEASED in svc.log_path.read_text(), 10, "the scan key released")
+            assert svc.log_path.read_text().count(WATCHED) == 1
+        else:  # the ingest hands the view its scans: no scan key of its own
+            assert WATCHED not in svc.log_path.read_text()
     finally:
         stop.set()
         if feeder is not None:
