@@ -170,6 +170,46 @@ def test_a_viewer_connected_before_the_robots_appear_gets_every_map(
     assert all(got[f"/{r}/map"].message.column_count == 6 for r in robots)
 
 
+@dataclass
+class _FakeFeed:
+    robot: SimRobot
+    closed: bool = False
+
+    def latest(self) -> Any:
+        return self.robot.next_scan()
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_scan_tap_is_opened_only_while_a_viewer_watches_the_scans(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With the scans in the mapper processes the view takes a robot's scans itself: nothing
+    while nobody watches them (a viewer of the map alone opens nothing), one feed while a
+    viewer subscribes to the scan channel, closed when it leaves."""
+    monkeypatch.setattr(foxglove_view, "MAP_PERIOD_S", 0.2)
+    feeds: list[_FakeFeed] = []
+
+    def tap(robot_id: str) -> _FakeFeed:
+        feeds.append(_FakeFeed(SimRobot(robot_id)))
+        return feeds[-1]
+
+    view = FoxgloveView(lambda: [_StillSession("tap-1")], port=0, scan_tap=tap)
+    view.start()
+    try:
+        fetch(view.url, {"/tap-1/map"}, timeout_s=30)
+        time.sleep(0.3)  # a few passes of the publisher thread
+        assert feeds == []
+        got = fetch(view.url, {"/tap-1/scan"}, timeout_s=30)
+        assert len(got["/tap-1/scan"].message.ranges) == 1081
+        assert len(feeds) == 1
+        wait_for(lambda: feeds[0].closed, 10, "the feed closed after the viewer left")
+    finally:
+        view.close()
+    assert len(feeds) == 1
+
+
 def test_demo_prints_a_foxglove_address_a_client_reads(tmp_path: Path) -> None:
     http_port, fox_port = free_port(), free_port()
     err_path = tmp_path / "demo.log"
