@@ -188,15 +188,20 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=None,
         metavar="K",
-        help="run the estimators in K worker processes, to use K cores with many robots "
-        "(or env MAPPING_MAPPER_PROCESSES; default: 0, in the service's process)",
+        help="run the per-scan path in K worker processes, to use K cores with many robots: "
+        "each subscribes to its share of the robots' scans and decodes, records, maps and "
+        "publishes them; the service's process keeps HTTP and control (they connect to "
+        "--zenoh-listen or --zenoh-connect: without either the scans go through the service's "
+        "process; or env MAPPING_MAPPER_PROCESSES; default: 0, all in the service's process)",
     )
     p_serve.add_argument(
         "--ingest-in-mappers",
-        action="store_true",
-        help="with --mapper-processes K > 0: each mapper process subscribes to its share of "
-        "the robots' scans and records, maps and publishes them itself; the service's process "
-        "keeps HTTP and control (or env MAPPING_INGEST_IN_MAPPERS=1; default: off)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="with --mapper-processes K > 0: scans straight to the mapper processes (the "
+        "default); --no-ingest-in-mappers: the older layout, scans taken in and validated "
+        "by the service's process, which forwards them to the mapper processes (or env "
+        "MAPPING_INGEST_IN_MAPPERS=0/1)",
     )
     p_serve.add_argument(
         "--no-loop-closure",

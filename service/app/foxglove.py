@@ -8,6 +8,16 @@ Per robot with a session, on topics under `/<robot_id>/`:
 - `trajectory` (`foxglove.SceneUpdate`): the trajectory as a line strip and the accepted loop
   closures as lines, when the session exposes them (`loop_closures()`), at most once per second.
 
+Where the scans come from: in the process that maps them, the ingest worker hands each one over
+(`observe`). When the mapper processes take the scans in (`--mapper-processes K`), the service's
+process has none, so the view is given a `scan_tap` instead: while (and only while) a viewer
+subscribes to a robot's `scan` channel, the view subscribes to that robot's scan key on the
+service's own Zenoh session, into a one-sample ring on Zenoh's side (no Python callback per
+scan), and decodes only the sample it takes, at most every 100 ms. Nobody watching costs
+nothing: no subscription, so Zenoh routes this process no scan. Having the mapper process
+forward them instead would put a check and a pipe write on its per-scan path, the one that
+limits the fleet. The poses come with the mapper processes' batched entries (`observe_pose`).
+
 Why a publisher thread and not encoding on the ingest worker: the worker only hands the latest
 scan and pose over (`observe`: a lock held for a dict assignment and a deque append, no
 encoding), so a slow or absent viewer can never delay a pose. The publisher thread wakes every
@@ -58,7 +68,8 @@ from foxglove.messages import (
 from foxglove.messages import Pose as FgPose
 from foxglove.websocket import ServerListener
 
-from clients.wire import Pose, Scan
+from clients.keyexpr import scan_key
+from clients.wire import Pose, Scan, WireError, decode_scan
 
 log = logging.getLogger(__name__)
 
@@ -99,6 +110,18 @@ class _Session(Protocol):
     def trajectory(self) -> list[Pose]: ...
 
 
+class ScanFeed(Protocol):
+    """One robot's scans taken for display only, held while a viewer watches its scans."""
+
+    def latest(self) -> Scan | None:
+        """The newest scan since the last call, if any (never blocks)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+# Opens a robot's `ScanFeed` (the view calls it when a viewer subscribes to its scans).
+ScanTap = Callable[[str], ScanFeed]
 SessionsSource = Callable[[], Iterable[_Session]]
 # Loop closures of a session as pairs of (x_m, y_m) points in the map frame: by default the
 # session's `loop_closures()` (none for a source without it, as tests may pass).
@@ -226,6 +249,37 @@ def trajectory_message(
     )
 
 
+class ZenohScanFeed:
+    """A robot's scan key on a Zenoh session, into a ring of one sample: Zenoh keeps the newest
+    on its side (no GIL per scan); `latest` decodes only what it takes."""
+
+    def __init__(self, session: Any, robot_id: str, prefix: str) -> None:
+        from zenoh.handlers import RingChannel  # noqa: PLC0415  # only with a tap
+
+        self._robot_id = robot_id
+        self._sub = session.declare_subscriber(scan_key(robot_id, prefix), RingChannel(1))
+
+    def latest(self) -> Scan | None:
+        sample = self._sub.try_recv()
+        if sample is None:
+            return None
+        try:
+            scan = decode_scan(sample.payload.to_bytes())
+        except WireError:
+            return None  # the ingest counts the rejection; the view just skips it
+        return scan if scan.robot_id == self._robot_id else None
+
+    def close(self) -> None:
+        try:
+            self._sub.undeclare()
+        except Exception as err:  # the session may be closing
+            log.debug("undeclare of %s's scan feed: %s", self._robot_id, err)
+
+
+def zenoh_scan_tap(session: Any, prefix: str) -> ScanTap:
+    return lambda robot_id: ZenohScanFeed(session, robot_id, prefix)
+
+
 @dataclass
 class _Robot:
     """One robot's channels and what the publisher thread has sent of it."""
@@ -240,6 +294,7 @@ class _Robot:
     session_id: str = ""
     session: Any = None  # the _Session the topics follow (set by the publisher thread)
     latest_scan: Scan | None = None  # guarded by FoxgloveView._lock
+    feed: ScanFeed | None = None  # with a scan tap: open while the scan channel has a viewer
     poses: deque[Pose] = field(default_factory=lambda: deque(maxlen=MAX_POSES_PER_TICK))
     scan_sent: Scan | None = None
     scan_sent_s: float = -math.inf
@@ -291,8 +346,12 @@ class FoxgloveView:
         port: int = 8765,
         loop_closures: LoopClosureSource = session_loop_closures,
         name: str = "mapping-service",
+        scan_tap: ScanTap | None = None,
     ) -> None:
+        """`scan_tap`: where to take a watched robot's scans when no ingest worker calls
+        `observe` in this process (the mapper processes take them in)."""
         self._sessions = sessions
+        self._scan_tap = scan_tap
         self._host = host
         self._requested_port = port
         self._loop_closures = loop_closures
@@ -345,6 +404,9 @@ class FoxgloveView:
             robots = list(self._robots.values())
             self._robots.clear()
         for robot in robots:
+            if robot.feed is not None:
+                robot.feed.close()
+                robot.feed = None
             for channel in robot.channels():
                 channel.close()
         if self._tf is not None:
@@ -364,6 +426,14 @@ class FoxgloveView:
             robot.latest_scan = scan
             if pose is not None:
                 robot.poses.append(pose)
+
+    def observe_pose(self, pose: Pose) -> None:
+        """A pose mapped in another process (its scan is not here: see `scan_tap`)."""
+        robot = self._robots.get(pose.robot_id)
+        if robot is None:
+            return
+        with self._lock:
+            robot.poses.append(pose)
 
     def _subscribed(self, topic: str) -> None:
         with self._lock:
@@ -435,6 +505,8 @@ class FoxgloveView:
                 scan = robot.latest_scan
                 poses = list(robot.poses)
                 robot.poses.clear()
+            if self._scan_tap is not None:
+                scan = self._tapped_scan(robot, now_s)
             if (
                 scan is not None
                 and scan is not robot.scan_sent
@@ -457,6 +529,24 @@ class FoxgloveView:
                         log_time=last.stamp_ns,
                     )
             self._publish_map(robot, now_s)
+
+    def _tapped_scan(self, robot: _Robot, now_s: float) -> Scan | None:
+        """The robot's newest scan from the tap when it is due, holding the robot's feed open
+        only while its scan channel has a subscriber."""
+        assert self._scan_tap is not None
+        if not robot.scan.has_sinks():
+            if robot.feed is not None:
+                robot.feed.close()
+                robot.feed = None
+                log.info("Foxglove: no viewer of %s's scans: its scan key released", robot.robot_id)
+            return None
+        if robot.feed is None:
+            robot.feed = self._scan_tap(robot.robot_id)
+            log.info("Foxglove: a viewer watches %s's scans: its scan key taken", robot.robot_id)
+            return None
+        if now_s - robot.scan_sent_s < SCAN_PERIOD_S:
+            return None
+        return robot.feed.latest()
 
     def _publish_map(self, robot: _Robot, now_s: float) -> None:
         map_wanted = robot.map.has_sinks()

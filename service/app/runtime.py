@@ -68,9 +68,17 @@ class MappingRuntime:
             engine = Engine(
                 front_end=settings.ingest.front_end, loop_closure=settings.ingest.loop_closure
             )
-        # With `ingest_in_mappers` the mapper processes take the robots' scans from Zenoh
-        # themselves; this process does not subscribe to them (service/app/mapper_ingest.py).
-        self.ingest_in_mappers = bool(processes and settings.ingest.ingest_in_mappers)
+        # With mapper processes they take the robots' scans from Zenoh themselves (the default);
+        # this process does not subscribe to them (service/app/mapper_ingest.py). They connect
+        # to this process's Zenoh endpoints, so without any the scans come through here.
+        z = settings.zenoh
+        self.ingest_in_mappers = settings.ingest.scans_in_mappers(bool(z.listen or z.connect))
+        if processes and not self.ingest_in_mappers and settings.ingest.ingest_in_mappers is None:
+            log.warning(
+                "%d mapper processes, but no --zenoh-listen or --zenoh-connect endpoint for "
+                "them to take the scans from: the scans go through the service's process",
+                processes,
+            )
         self.mapper_pool = (
             MapperPool(
                 processes,
@@ -215,7 +223,12 @@ class MappingRuntime:
         )
 
     def _to_streams(self, pose: Pose) -> None:
+        """A pose a mapper process published itself: the browser streams and the Foxglove
+        view (which the ingest here would otherwise have fed)."""
         self.fanout.to_streams(pose)
+        view = self.foxglove
+        if view is not None:
+            view.observe_pose(pose)
 
     def _on_mapper_stats(
         self, source: str, generation: int, snap: Snapshot, stats: IngestStats
@@ -315,9 +328,16 @@ class MappingRuntime:
         port = self.settings.http.foxglove_port
         if not port:
             return
-        from service.app.foxglove import FoxgloveView  # noqa: PLC0415  # only when enabled
+        from service.app.foxglove import FoxgloveView, zenoh_scan_tap  # noqa: PLC0415
 
-        view = FoxgloveView(self.sessions.list, host=self.settings.http.host, port=port)
+        # With the scans in the mapper processes, a watched robot's scans are taken from
+        # Zenoh here, for display only, while a viewer subscribes to them (foxglove.py).
+        tap = None
+        if self.ingest_in_mappers and self.zenoh is not None:
+            tap = zenoh_scan_tap(self.zenoh, self.settings.zenoh.prefix)
+        view = FoxgloveView(
+            self.sessions.list, host=self.settings.http.host, port=port, scan_tap=tap
+        )
         try:
             view.start()
         except OSError as err:

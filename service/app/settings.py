@@ -118,8 +118,10 @@ class IngestSettings(_Frozen):
     # With mapper processes: each process subscribes to its share of the scan keys itself and
     # runs the whole per-scan path (decode, validate, record, map, publish); the service's
     # process only routes Zenoh, serves HTTP and does control (service/app/mapper.py).
-    ingest_in_mappers: bool = Field(
-        default=False, description="scans go straight to the mapper processes (needs K > 0)"
+    # None (the default): on whenever K > 0 and the processes have an endpoint to connect to
+    # (`scans_in_mappers`); False keeps the older layout (scans through the service's process).
+    ingest_in_mappers: bool | None = Field(
+        default=None, description="scans go straight to the mapper processes (default: K > 0)"
     )
 
     @property
@@ -127,6 +129,13 @@ class IngestSettings(_Frozen):
         """Payloads of robots not tracked yet, waiting to be validated (one shared queue,
         drop oldest): what a flood of made-up robot ids can occupy."""
         return max(self.queue_depth, 128)
+
+    def scans_in_mappers(self, has_endpoint: bool) -> bool:
+        """Whether the mapper processes take the scans in: asked for, or by default when there
+        are any and the service has a Zenoh endpoint they can connect to (`has_endpoint`)."""
+        if not self.mapper_processes or self.ingest_in_mappers is False:
+            return False
+        return self.ingest_in_mappers is True or has_endpoint
 
     @property
     def worker_threads(self) -> int:
@@ -189,7 +198,7 @@ class ServiceSettings(_Frozen):
             check_instance_id(self.fleet.effective_instance_id(self.http.port))
         except (InvalidPrefixError, InvalidInstanceIdError) as err:
             raise SettingsError(str(err)) from err
-        if self.ingest.ingest_in_mappers:
+        if self.ingest.ingest_in_mappers is True:
             if not self.ingest.mapper_processes:
                 raise SettingsError("--ingest-in-mappers needs --mapper-processes K > 0")
             z = self.zenoh
@@ -375,8 +384,8 @@ def build_settings(
             else from_env(front_end="FRONT_END")
         )
         | (
-            {"ingest_in_mappers": True}
-            if getattr(args, "ingest_in_mappers", False)
+            {"ingest_in_mappers": args.ingest_in_mappers}
+            if getattr(args, "ingest_in_mappers", None) is not None
             else from_env(ingest_in_mappers="INGEST_IN_MAPPERS")
         ),
         "fleet": {

@@ -545,6 +545,11 @@ RuntimeFactory = Callable[..., MappingRuntime]
 def make_settings(
     data_dir: Path, token: str | None = None, read_token: str | None = None, **ingest: int
 ) -> ServiceSettings:
+    # These runtimes listen nowhere and are fed with `ingest.submit`, so their mapper processes
+    # cannot take scans from Zenoh: the layout with the scans through the service's process
+    # (`--no-ingest-in-mappers`), asked for explicitly. Real processes test the default one.
+    if ingest.get("mapper_processes"):
+        ingest.setdefault("ingest_in_mappers", False)
     return ServiceSettings(
         http=HttpSettings(max_body_bytes=64 * 1024),
         storage=StorageSettings(data_dir=data_dir, fsync_interval_s=0.2),

@@ -40,10 +40,21 @@ def _publish_scans(endpoint: str, robot: SimRobot, stop: threading.Event) -> Non
             peer.put(scan_key(robot.robot_id), encode_scan(robot.next_scan()))
 
 
-def test_foxglove_client_decodes_grid_pose_scan_and_transform(tmp_path: Path) -> None:
+WATCHED = f"a viewer watches {ROBOT}'s scans"
+RELEASED = f"no viewer of {ROBOT}'s scans"
+
+
+# Both layouts: one process (the scans are in the service's process), and the scans taken in by
+# a mapper process (the service's process takes a watched robot's scans from Zenoh for display).
+@pytest.mark.parametrize(
+    "layout", [[], ["--mapper-processes", "1"]], ids=["one-process", "mapper-processes"]
+)
+def test_foxglove_client_decodes_grid_pose_scan_and_transform(
+    tmp_path: Path, layout: list[str]
+) -> None:
     fox_port = free_port()
-    svc = ServiceProc(tmp_path / "data")
-    svc.start(args=["--foxglove-port", str(fox_port)])
+    svc = ServiceProc(tmp_path / "data", extra_args=layout)
+    svc.start(args=["--foxglove-port", str(fox_port)], timeout_s=60)
     stop = threading.Event()
     feeder: threading.Thread | None = None
     try:
@@ -52,8 +63,15 @@ def test_foxglove_client_decodes_grid_pose_scan_and_transform(tmp_path: Path) ->
         feeder = threading.Thread(target=_publish_scans, args=(svc.zenoh_endpoint, robot, stop))
         feeder.start()
         wait_for(lambda: svc.json(f"/sessions/{sid}")["poses"] >= 20, 60, "20 poses")
+        # Nobody watches yet: the service's process takes no scan key for the view.
+        assert WATCHED not in svc.log_path.read_text()
         topics = {f"/{ROBOT}/map", f"/{ROBOT}/pose", f"/{ROBOT}/scan", "/tf"}
         got = fetch(f"ws://127.0.0.1:{fox_port}", topics | {f"/{ROBOT}/trajectory"})
+        if layout:  # the viewer is gone: the scan key is released again
+            wait_for(lambda: RELEASED in svc.log_path.read_text(), 10, "the scan key released")
+            assert svc.log_path.read_text().count(WATCHED) == 1
+        else:  # the ingest hands the view its scans: no scan key of its own
+            assert WATCHED not in svc.log_path.read_text()
     finally:
         stop.set()
         if feeder is not None:
@@ -150,6 +168,46 @@ def test_a_viewer_connected_before_the_robots_appear_gets_every_map(
         arrivals.join()
         view.close()
     assert all(got[f"/{r}/map"].message.column_count == 6 for r in robots)
+
+
+@dataclass
+class _FakeFeed:
+    robot: SimRobot
+    closed: bool = False
+
+    def latest(self) -> Any:
+        return self.robot.next_scan()
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_scan_tap_is_opened_only_while_a_viewer_watches_the_scans(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """With the scans in the mapper processes the view takes a robot's scans itself: nothing
+    while nobody watches them (a viewer of the map alone opens nothing), one feed while a
+    viewer subscribes to the scan channel, closed when it leaves."""
+    monkeypatch.setattr(foxglove_view, "MAP_PERIOD_S", 0.2)
+    feeds: list[_FakeFeed] = []
+
+    def tap(robot_id: str) -> _FakeFeed:
+        feeds.append(_FakeFeed(SimRobot(robot_id)))
+        return feeds[-1]
+
+    view = FoxgloveView(lambda: [_StillSession("tap-1")], port=0, scan_tap=tap)
+    view.start()
+    try:
+        fetch(view.url, {"/tap-1/map"}, timeout_s=30)
+        time.sleep(0.3)  # a few passes of the publisher thread
+        assert feeds == []
+        got = fetch(view.url, {"/tap-1/scan"}, timeout_s=30)
+        assert len(got["/tap-1/scan"].message.ranges) == 1081
+        assert len(feeds) == 1
+        wait_for(lambda: feeds[0].closed, 10, "the feed closed after the viewer left")
+    finally:
+        view.close()
+    assert len(feeds) == 1
 
 
 def test_demo_prints_a_foxglove_address_a_client_reads(tmp_path: Path) -> None:

@@ -73,6 +73,8 @@ def assert_same_session_data(a: MappingSession | Seen, b: MappingSession | Seen)
 
 # The same guarantees with the estimators in mapper processes (`--mapper-processes`), which
 # then hold a lease of each active session's recording: they record scans and poses themselves.
+# In process, fed by `ingest.submit`: the layout with the scans through the service's process
+# (svc_testkit.make_settings); the kill -9 test below runs both layouts as real processes.
 MAPPERS = pytest.mark.parametrize("mappers", [0, 2], ids=["in-process", "mapper-processes"])
 
 
@@ -323,10 +325,18 @@ def test_group_commit_fsyncs_only_changed_recordings(
     assert session.info().scans_accepted == 2
 
 
+# Real processes: the default layout with mapper processes has them take the scans from Zenoh;
+# `--no-ingest-in-mappers` is the older one (scans through the service's process).
 @pytest.mark.slow
 @pytest.mark.timeout(90)
-@MAPPERS
-def test_kill_9_right_after_an_acknowledgement_loses_nothing(tmp_path: Path, mappers: int) -> None:
+@pytest.mark.parametrize(
+    ("mappers", "layout"),
+    [(0, []), (2, []), (2, ["--no-ingest-in-mappers"])],
+    ids=["in-process", "mapper-processes", "scans-through-the-service"],
+)
+def test_kill_9_right_after_an_acknowledgement_loses_nothing(
+    tmp_path: Path, mappers: int, layout: list[str]
+) -> None:
     """Every scan and pose the service has acknowledged (in its counters and trajectory) was
     written to the kernel before it showed: kill -9 at that moment, with nothing else in flight,
     and a restart has all of them, identical. Deterministic: which records are acknowledged does
@@ -334,7 +344,7 @@ def test_kill_9_right_after_an_acknowledgement_loses_nothing(tmp_path: Path, map
     With mapper processes (which then write the recording), they die with the service."""
     data = tmp_path / "data"
     token = "k9-token"
-    args = ["--mapper-processes", str(mappers)]
+    args = ["--mapper-processes", str(mappers), *layout]
     svc = ServiceProc(data, token=token, extra_args=args)
     svc.start()
     scans = 60

@@ -368,6 +368,33 @@ def test_settings_mapper_processes_from_flag_or_environment(tmp_path: Path) -> N
         build_settings(bad, env={})
 
 
+def test_scans_go_to_the_mapper_processes_by_default_when_there_are_any(tmp_path: Path) -> None:
+    parser = build_parser()
+    base = ["serve", "--data-dir", str(tmp_path), "--zenoh-listen", "tcp/127.0.0.1:7447"]
+
+    def scans_in_mappers(*flags: str, env: dict[str, str] | None = None) -> bool:
+        ingest = build_settings(parser.parse_args([*base, *flags]), env=env or {}).ingest
+        return ingest.scans_in_mappers(has_endpoint=True)
+
+    assert not scans_in_mappers()  # no mapper processes: all in one process
+    assert scans_in_mappers("--mapper-processes", "2")
+    assert not scans_in_mappers("--mapper-processes", "2", "--no-ingest-in-mappers")
+    assert not scans_in_mappers("--mapper-processes", "2", env={"MAPPING_INGEST_IN_MAPPERS": "0"})
+    assert scans_in_mappers(  # the flag wins over the environment
+        "--mapper-processes", "2", "--ingest-in-mappers", env={"MAPPING_INGEST_IN_MAPPERS": "0"}
+    )
+    # Without an endpoint for the processes to connect to, the default falls back to the scans
+    # through the service's process; asking for it explicitly is refused.
+    plain = build_settings(
+        parser.parse_args(["serve", "--data-dir", str(tmp_path), "--mapper-processes", "2"]),
+        env={},
+    )
+    assert not plain.ingest.scans_in_mappers(has_endpoint=False)
+    explicit = ["serve", "--data-dir", str(tmp_path), "--mapper-processes", "2"]
+    with pytest.raises(SettingsError, match="zenoh-listen"):
+        build_settings(parser.parse_args([*explicit, "--ingest-in-mappers"]), env={})
+
+
 def test_body_limit_refuses_a_non_ascii_digit_content_length() -> None:
     """'¹' passes str.isdigit() but not int(): a clear 400, not a server error. (h11 refuses
     such a header before the app sees it; other servers may not, so the ASGI app is called.)"""

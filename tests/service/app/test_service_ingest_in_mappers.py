@@ -1,4 +1,4 @@
-"""Mapper processes that ingest (`--mapper-processes K --ingest-in-mappers`), as real processes.
+"""Mapper processes that ingest (`--mapper-processes K`, the default layout), as real processes.
 
 Each mapper process takes its robots' scans from Zenoh itself and maps, records and publishes
 them; the service's process never takes a scan in. Checked here: two robots in two processes
@@ -30,7 +30,7 @@ pytestmark = pytest.mark.slow
 def _service(tmp_path: Path, processes: int) -> Iterator[ServiceProc]:
     svc = ServiceProc(
         tmp_path / "data",
-        extra_args=["--mapper-processes", str(processes), "--ingest-in-mappers"],
+        extra_args=["--mapper-processes", str(processes)],
     )
     svc.start(timeout_s=60)
     try:

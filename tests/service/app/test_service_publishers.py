@@ -122,8 +122,8 @@ def robot_health(svc: ServiceProc, robot_id: str) -> dict[str, object]:
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize(
     "layout",
-    [[], ["--mapper-processes", "2", "--ingest-in-mappers"]],
-    ids=["one-process", "ingest-in-mappers"],
+    [[], ["--mapper-processes", "2"]],
+    ids=["one-process", "mapper-processes"],
 )
 def test_two_agents_as_one_robot(tmp_path: Path, layout: list[str]) -> None:
     svc = ServiceProc(tmp_path / "data", extra_args=layout)
