@@ -32,7 +32,7 @@ independent evidence (Cartographer scales its occupied-space residuals the same 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -53,6 +53,12 @@ class MatchOptions:
     search_points: int = 200  # scan points scored by the search (evenly subsampled)
     refine_iterations: int = 12
     wall_huber: float = 2.0  # the wall prior's residual is linear beyond this many σ
+    # The motion prior is a mixture: the prediction's Gaussian, or, at this cost (-2 ln of its
+    # weight), anywhere in a broad window (stamps that lie, a stale scan, a kick). Searched
+    # only when the match costs more than this, since it can only win then.
+    broad_cost: float = 150.0
+    broad_search_m: float = 1.0  # the broad window: ± this in x and y ...
+    broad_search_rad: float = math.radians(90.0)  # ... and ± this in θ
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,6 +78,8 @@ class MatchResult:
     scan_information: FloatArray  # (3, 3): the scan's own part of the Hessian
     score: float  # mean field value of the scan's points at the pose, in [0, 1]
     searched_cells: int  # poses scored by the search
+    cost: float  # the objective at the refined pose (the broad component's includes its cost)
+    broad: bool = False  # won by the motion prior's broad component: the prediction was wrong
 
 
 def _delta(pose: Pose2D, ref: Pose2D) -> FloatArray:
@@ -251,8 +259,8 @@ def _scan_terms(
 
 def refine(
     grid: LikelihoodGrid, points_xy_m: FloatArray, start: Pose2D, priors: Priors, opts: MatchOptions
-) -> tuple[Pose2D, FloatArray, FloatArray, float]:
-    """Gauss-Newton from `start`: (pose, posterior covariance, scan information, score)."""
+) -> tuple[Pose2D, FloatArray, FloatArray, float, float]:
+    """Gauss-Newton from `start`: (pose, posterior covariance, scan information, score, cost)."""
     info_pred = np.linalg.inv(priors.cov_pred)
     pose = start
 
@@ -287,23 +295,51 @@ def refine(
         if not accepted or (abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-6):
             break
     covariance = np.linalg.inv(h)
-    return pose, 0.5 * (covariance + covariance.T), h_scan, score
+    return pose, 0.5 * (covariance + covariance.T), h_scan, score, cost
 
 
 def match(
     grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
 ) -> MatchResult:
-    """Search, then refine, then read the weakest axis off the response: the scan's pose in the
-    map frame and how sure it is."""
+    """The scan's pose in the map frame and how sure it is, under the mixture motion prior:
+    matched around the prediction; where that costs more than `broad_cost`, matched again over
+    the broad window, which wins if it costs `broad_cost` less."""
+    result = _match_component(grid, points_xy_m, priors, opts)
+    if result.cost <= opts.broad_cost:
+        return result
+    # The broad component: a Gaussian as wide as its window (it keeps the refinement and the
+    # covariance well posed; at the window's edge it costs search_sigmas², little beside
+    # broad_cost), no walls' prior (its nearest family member is picked for the prediction).
+    broad_priors = Priors(priors.predicted, broad_covariance(opts))
+    broad_opts = replace(
+        opts, search_max_m=opts.broad_search_m, search_max_rad=opts.broad_search_rad
+    )
+    broad = _match_component(grid, points_xy_m, broad_priors, broad_opts)
+    if broad.cost + opts.broad_cost < result.cost:
+        return replace(broad, cost=broad.cost + opts.broad_cost, broad=True)
+    return result
+
+
+def broad_covariance(opts: MatchOptions) -> FloatArray:
+    """The motion prior's broad component: a Gaussian as wide as the broad window."""
+    sigma_m = opts.broad_search_m / opts.search_sigmas
+    sigma_rad = opts.broad_search_rad / opts.search_sigmas
+    return np.diag([sigma_m**2, sigma_m**2, sigma_rad**2])
+
+
+def _match_component(
+    grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
+) -> MatchResult:
+    """Search, then refine, then read the weakest axis off the response."""
     start, cells = search(grid, points_xy_m, priors, opts)
-    pose, covariance, h_scan, score = refine(grid, points_xy_m, start, priors, opts)
+    pose, covariance, h_scan, score, cost = refine(grid, points_xy_m, start, priors, opts)
     shift_m, h_weak = weakest_axis_from_response(grid, points_xy_m, pose, priors, h_scan, opts=opts)
     if h_weak is not h_scan:
         pose = Pose2D(pose.x_m + float(shift_m[0]), pose.y_m + float(shift_m[1]), pose.theta_rad)
         posterior = np.linalg.inv(np.linalg.inv(covariance) - h_scan + h_weak)
         covariance = np.asarray(0.5 * (posterior + posterior.T), dtype=np.float64)
         h_scan = h_weak
-    return MatchResult(pose, covariance, h_scan, score, cells)
+    return MatchResult(pose, covariance, h_scan, score, cells, cost)
 
 
 def weakest_axis_from_response(

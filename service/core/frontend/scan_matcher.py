@@ -22,7 +22,7 @@ import numpy as np
 
 from clients.wire import PoseFlag
 from service.core.frontend.likelihood import LikelihoodGrid
-from service.core.frontend.matcher import MatchOptions, Priors, match
+from service.core.frontend.matcher import MatchOptions, Priors, broad_covariance, match
 from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
 from service.core.maps.submaps import voxel_thin
 from service.core.types import (
@@ -299,6 +299,13 @@ class ScanMatcherFrontEnd:
             priors = Priors(predicted, cov_pred, wall_rad, wall_sigma)
             result = match(self._submaps[0], pts, priors, p.match)
             pose, h_scan, score = result.pose, result.scan_information, result.score
+            if result.broad:
+                # The prediction was wrong: the motion since it is as loose as the broad window,
+                # and the velocity starts again from this scan, as after a pause.
+                flags |= PoseFlag.RELOCALISED
+                cov_pred = broad_covariance(p.match)
+                self._velocity, self._velocity_cov = np.zeros(3), _UNKNOWN_VELOCITY_COV
+                self._velocity_anchor = None
         travel = (
             0.0
             if self._pose is None

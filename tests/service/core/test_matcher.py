@@ -39,6 +39,28 @@ def test_a_shifted_scan_is_recovered_against_its_own_submap(
     assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.1
 
 
+def test_a_prediction_far_off_is_recovered_by_the_broad_component() -> None:
+    """A stale scan or a lying stamp puts the prediction 40° and 0.4 m off with a tight σ: the
+    narrow match cannot reach the truth, costs more than `broad_cost`, and the broad window
+    finds it (flagged `broad`). A good prediction never pays for the broad search."""
+    rng = np.random.default_rng(6)
+    truth = Pose2D(3.0, 2.5, 0.3)
+    scan = scan_of(ROOM, truth, rng)
+    grid = grid_of([(scan, truth)])
+    cov = np.diag([0.02**2, 0.02**2, math.radians(1.0) ** 2])
+    off = Pose2D(truth.x_m + 0.4, truth.y_m - 0.3, truth.theta_rad + math.radians(40.0))
+    result = match(grid, matched_points(scan), Priors(off, cov), MatchOptions())
+    assert result.broad
+    assert math.hypot(result.pose.x_m - truth.x_m, result.pose.y_m - truth.y_m) < 0.01
+    assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.1
+    kept = match(grid, matched_points(scan), Priors(truth, cov), MatchOptions())
+    assert not kept.broad
+    assert kept.cost < MatchOptions().broad_cost
+    never = match(grid, matched_points(scan), Priors(off, cov), MatchOptions(broad_cost=math.inf))
+    assert not never.broad
+    assert abs(math.degrees(never.pose.theta_rad - truth.theta_rad)) > 10.0
+
+
 def test_a_plain_corridor_gives_a_covariance_long_along_it() -> None:
     """No structure along the corridor: the scan's information there is nil, so the posterior
     along it is the prior's, at least 10 times the σ across it. (The submap holds ten scans,
