@@ -48,6 +48,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from service.core.frontend import kernels
 from service.core.frontend.likelihood import F32Array, LikelihoodGrid
 from service.core.types import FloatArray
 
@@ -173,7 +174,7 @@ class _Problem:
     ) -> None:
         self.pyr = pyramid
         self.lat = lat
-        self.px, self.py = pts[:, 0], pts[:, 1]
+        self.px, self.py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
         self.range_m = np.hypot(self.px, self.py)
         self.res = grid.resolution_m
         self.origin = grid.origin_m
@@ -186,15 +187,27 @@ class _Problem:
     def exact(self, k: IntArray, a: IntArray, b: IntArray) -> FloatArray:
         """The cost of poses (rotation k, row offset a - ny, column offset b - nx), with the
         brute force's operations in the brute force's order: the same bits."""
-        lat, res = self.lat, self.res
-        c, s = self.cos[k][:, None], self.sin[k][:, None]
-        mx = c * self.px[None, :] - s * self.py[None, :] + lat.predicted_xy_m[0]
-        my = s * self.px[None, :] + c * self.py[None, :] + lat.predicted_xy_m[1]
+        lat, res, pyr = self.lat, self.res, self.pyr
         di, dj = a - lat.half_rows, b - lat.half_cols
-        rows = np.rint((my - self.origin[1]) / res - 0.5).astype(np.int64) + di[:, None]
-        cols = np.rint((mx - self.origin[0]) / res - 0.5).astype(np.int64) + dj[:, None]
-        level0 = np.zeros_like(rows)
-        scan = lat.scan_weight * self.pyr.lookup(level0, rows, cols).mean(axis=1, dtype=np.float64)
+        looked_up = kernels.lattice_gather(
+            pyr.flat,
+            pyr.row0,
+            pyr.col0,
+            pyr.height,
+            pyr.width,
+            self.px,
+            self.py,
+            self.cos[k],
+            self.sin[k],
+            di,
+            dj,
+            lat.predicted_xy_m[0],
+            lat.predicted_xy_m[1],
+            self.origin[0],
+            self.origin[1],
+            res,
+        )
+        scan = lat.scan_weight * looked_up.mean(axis=1, dtype=np.float64)
         info = lat.info_pred
         dx, dy = dj * res, di * res
         dt = _wrap(lat.thetas_rad[k] - lat.predicted_theta_rad)
@@ -223,21 +236,33 @@ class _Problem:
         b1 = np.minimum(b0 + (1 << d), self.n_cols) - 1
         t0, t1 = lat.thetas_rad[k0], lat.thetas_rad[k1]
         mid, half = 0.5 * (t0 + t1), 0.5 * (t1 - t0)
-        c, s = np.cos(mid)[:, None], np.sin(mid)[:, None]
-        u = (c * self.px - s * self.py + lat.predicted_xy_m[0] - self.origin[0]) / res - 0.5
-        v = (s * self.px + c * self.py + lat.predicted_xy_m[1] - self.origin[1]) / res - 0.5
-        # Where a point can be over the block's rotations: within |p|·δ of the middle's place
-        # (plus slack for the brute force's own rounding of the same positions).
-        reach = self.range_m[None, :] * (half / res)[:, None] + 1e-6
-        lo_c = np.rint(u - reach).astype(np.int64)
-        lo_r = np.rint(v - reach).astype(np.int64)
-        span_c = np.rint(u + reach).astype(np.int64) - lo_c + (b1 - b0 + 1)[:, None]
-        span_r = np.rint(v + reach).astype(np.int64) - lo_r + (a1 - a0 + 1)[:, None]
-        side = np.maximum(span_r, span_c)
-        level = np.frexp(side - 1)[1]  # ceil(log2(side)): the smallest square that holds it
-        rows = lo_r + (a0 - lat.half_rows)[:, None]
-        cols = lo_c + (b0 - lat.half_cols)[:, None]
-        scan = lat.scan_weight * self.pyr.lookup(level, rows, cols).mean(axis=1, dtype=np.float64)
+        # Per point: where it can be over the block's rotations, within |p|·δ of the middle's
+        # place (plus slack for the brute force's own rounding of the same positions), widened
+        # by the block's translations; the pyramid's minimum over a square that holds that.
+        pyr = self.pyr
+        mean = kernels.block_scan_bounds(
+            pyr.flat,
+            pyr.row0,
+            pyr.col0,
+            pyr.height,
+            pyr.width,
+            pyr.max_level,
+            self.px,
+            self.py,
+            self.range_m,
+            mid,
+            half,
+            a0 - lat.half_rows,
+            b0 - lat.half_cols,
+            a1 - a0 + 1,
+            b1 - b0 + 1,
+            lat.predicted_xy_m[0],
+            lat.predicted_xy_m[1],
+            self.origin[0],
+            self.origin[1],
+            res,
+        )
+        scan = lat.scan_weight * mean
         bound: FloatArray = (
             scan + self._prior_bound((k0, k1), (a0, a1), (b0, b1)) + self._wall_bound(t0, t1)
         )

@@ -1,0 +1,232 @@
+"""The matcher's inner loops, compiled (numba): the same floating-point operations, in the same
+order, as the numpy code they replace, so the same bits.
+
+What numpy would compute with its own vectorised transcendental functions (log, exp) or with
+BLAS, and the sums whose order numpy chooses (pairwise), stay in numpy with the callers: the
+kernels do only the elementwise arithmetic and the gathers, where a scan's few hundred points
+cost numpy dozens of calls of overhead each. No fastmath: LLVM then neither reorders nor fuses
+(a·b + c stays two roundings).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+import numpy.typing as npt
+
+from service.core.types import FloatArray
+
+F32Array = npt.NDArray[np.float32]
+IntArray = npt.NDArray[np.int64]
+
+_jit = numba.njit(cache=True, nogil=True)
+
+
+@_jit
+def interpolate(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    values: F32Array,
+    origin_x: float,
+    origin_y: float,
+    res: float,
+    pts: FloatArray,
+    c: float,
+    s: float,
+    tx: float,
+    ty: float,
+) -> tuple[FloatArray, FloatArray]:
+    """`LikelihoodGrid.interpolate` at the points `pts` rotated by (c, s) and moved by (tx, ty)
+    (`rotate_points` then the translation): bicubic value (clipped to [0, 1]) and gradient."""
+    n = pts.shape[0]
+    h, w = values.shape
+    value = np.zeros(n)
+    grad = np.zeros((n, 2))
+    if h < 4 or w < 4:
+        return value, grad
+    wu = np.empty(4)
+    dwu = np.empty(4)
+    wv = np.empty(4)
+    dwv = np.empty(4)
+    for k in range(n):
+        qx = (c * pts[k, 0] - s * pts[k, 1]) + tx
+        qy = (s * pts[k, 0] + c * pts[k, 1]) + ty
+        u = (qx - origin_x) / res - 0.5
+        v = (qy - origin_y) / res - 0.5
+        fv = math.floor(v)
+        fu = math.floor(u)
+        if not (fv >= 1.0 and fu >= 1.0 and fv < h - 2 and fu < w - 2):
+            continue  # off the grid (or not a number): 0, no gradient
+        i0 = int(fv)
+        j0 = int(fu)
+        _catmull_rom(v - i0, wv, dwv)
+        _catmull_rom(u - j0, wu, dwu)
+        val = 0.0
+        d_du = 0.0
+        d_dv = 0.0
+        for a in range(4):
+            row = 0.0
+            drow = 0.0
+            for b in range(4):
+                f = np.float64(values[i0 - 1 + a, j0 - 1 + b])
+                row += wu[b] * f
+                drow += dwu[b] * f
+            val += wv[a] * row
+            d_dv += dwv[a] * row
+            d_du += wv[a] * drow
+        value[k] = min(max(val, 0.0), 1.0)
+        grad[k, 0] = d_du / res
+        grad[k, 1] = d_dv / res
+    return value, grad
+
+
+@_jit
+def _catmull_rom(t: float, weights: FloatArray, slopes: FloatArray) -> None:
+    """`likelihood._catmull_rom` at one fraction, written into `weights` and `slopes`."""
+    t2 = t * t
+    t3 = t * t * t
+    weights[0] = 0.5 * (-t3 + 2.0 * t2 - t)
+    weights[1] = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
+    weights[2] = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
+    weights[3] = 0.5 * (t3 - t2)
+    slopes[0] = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
+    slopes[1] = 0.5 * (9.0 * t2 - 10.0 * t)
+    slopes[2] = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
+    slopes[3] = 0.5 * (3.0 * t2 - 2.0 * t)
+
+
+@_jit
+def scan_jacobians(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    value: FloatArray,
+    grad: FloatArray,
+    r_sq: FloatArray,
+    pts: FloatArray,
+    c: float,
+    s: float,
+    max_residual_sigmas: float,
+) -> tuple[FloatArray, FloatArray]:
+    """`matcher._scan_terms`' per-point rows in the pose (x, y, θ): ∂(r²/2)/∂pose and the
+    Gauss-Newton Jacobian ∂r/∂pose, each (N, 3)."""
+    n = pts.shape[0]
+    half_grad = np.empty((n, 3))
+    jac = np.empty((n, 3))
+    for k in range(n):
+        r = math.sqrt(r_sq[k])
+        inlier = r < max_residual_sigmas and value[k] > 0.0
+        inv_m = 1.0 / max(value[k], 1e-9) if inlier else 0.0
+        hx = -grad[k, 0] * inv_m
+        hy = -grad[k, 1] * inv_m
+        r_held = max(r, 0.1)
+        jx = hx / r_held
+        jy = hy / r_held
+        dqx_dt = -s * pts[k, 0] - c * pts[k, 1]
+        dqy_dt = c * pts[k, 0] - s * pts[k, 1]
+        half_grad[k, 0] = hx
+        half_grad[k, 1] = hy
+        half_grad[k, 2] = hx * dqx_dt + hy * dqy_dt
+        jac[k, 0] = jx
+        jac[k, 1] = jy
+        jac[k, 2] = jx * dqx_dt + jy * dqy_dt
+    return half_grad, jac
+
+
+@_jit
+def _clamp(i: int, lo: int, hi: int) -> int:
+    return min(max(i, lo), hi)
+
+
+@_jit
+def lattice_gather(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    flat: F32Array,
+    row0: int,
+    col0: int,
+    height: int,
+    width: int,
+    px: FloatArray,
+    py: FloatArray,
+    cos_k: FloatArray,
+    sin_k: FloatArray,
+    di: IntArray,
+    dj: IntArray,
+    tx: float,
+    ty: float,
+    origin_x: float,
+    origin_y: float,
+    res: float,
+) -> F32Array:
+    """`search._Problem.exact`'s lookups: for each pose m (rotation (cos_k, sin_k)[m], cell
+    offset (di, dj)[m] from (tx, ty)) the cost (a pyramid's level 0) under every point, (M, N).
+    The mean is left to numpy (its summation order is the brute force's)."""
+    m_n = cos_k.shape[0]
+    n = px.shape[0]
+    out = np.empty((m_n, n), dtype=np.float32)
+    for m in range(m_n):
+        c = cos_k[m]
+        s = sin_k[m]
+        for i in range(n):
+            mx = c * px[i] - s * py[i] + tx
+            my = s * px[i] + c * py[i] + ty
+            row = int(np.rint((my - origin_y) / res - 0.5)) + di[m]
+            col = int(np.rint((mx - origin_x) / res - 0.5)) + dj[m]
+            r = _clamp(row - row0, 0, height - 1)
+            cc = _clamp(col - col0, 0, width - 1)
+            out[m, i] = flat[r * width + cc]
+    return out
+
+
+@_jit
+def block_scan_bounds(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    flat: F32Array,
+    row0: int,
+    col0: int,
+    height: int,
+    width: int,
+    max_level: int,
+    px: FloatArray,
+    py: FloatArray,
+    range_m: FloatArray,
+    mid: FloatArray,
+    half: FloatArray,
+    row_off: IntArray,
+    col_off: IntArray,
+    rows_n: IntArray,
+    cols_n: IntArray,
+    tx: float,
+    ty: float,
+    origin_x: float,
+    origin_y: float,
+    res: float,
+) -> FloatArray:
+    """`search._Problem.bound`'s scan term without the weight: per block, the mean over points
+    of the pyramid's minimum over a square holding every cell the point can reach in the block
+    (rotation `mid` ± `half`, first cell offset (row_off, col_off), rows_n × cols_n offsets).
+    A bound, so its summation order is free (the search's slack covers it)."""
+    m_n = mid.shape[0]
+    n = px.shape[0]
+    out = np.empty(m_n)
+    global_min = flat[flat.shape[0] - 1]
+    for m in range(m_n):
+        c = math.cos(mid[m])
+        s = math.sin(mid[m])
+        h = half[m] / res
+        total = 0.0
+        for i in range(n):
+            u = (c * px[i] - s * py[i] + tx - origin_x) / res - 0.5
+            v = (s * px[i] + c * py[i] + ty - origin_y) / res - 0.5
+            reach = range_m[i] * h + 1e-6
+            lo_c = int(np.rint(u - reach))
+            lo_r = int(np.rint(v - reach))
+            span_c = int(np.rint(u + reach)) - lo_c + cols_n[m]
+            span_r = int(np.rint(v + reach)) - lo_r + rows_n[m]
+            side = max(span_r, span_c)
+            level = 0
+            while (1 << level) < side:  # the smallest square that holds it
+                level += 1
+            if level > max_level:
+                total += global_min
+                continue
+            r = _clamp(lo_r + row_off[m] - row0, 0, height - 1)
+            cc = _clamp(lo_c + col_off[m] - col0, 0, width - 1)
+            total += flat[(level * height + r) * width + cc]
+        out[m] = total / max(n, 1)
+    return out
