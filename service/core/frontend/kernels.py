@@ -230,3 +230,30 @@ def block_scan_bounds(  # noqa: PLR0917 - numba takes no keyword-only arguments
             total += flat[(level * height + r) * width + cc]
         out[m] = total / max(n, 1)
     return out
+
+
+@_jit
+def pyramid_update(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    levels: F32Array, cap: float, r0: int, r1: int, c0: int, c1: int
+) -> None:
+    """Levels 1.. of a min-pyramid (`search.build_pyramid`: level m + 1 at (r, c) = min of level
+    m at (r, c), (r + s, c), (r, c + s), (r + s, c + s), s = 2^m, past the crop's end the cap)
+    over the anchors whose window meets level 0's rows r0:r1, columns c0:c1, after those
+    changed. A minimum is exact in any order: the same values as building it whole."""
+    n_lv, h, w = levels.shape
+    capf = np.float32(cap)
+    for m in range(n_lv - 1):
+        s = 1 << m
+        a0 = max(0, r0 - (2 * s - 1))
+        b0 = max(0, c0 - (2 * s - 1))
+        for r in range(a0, min(h, r1)):
+            for c in range(b0, min(w, c1)):
+                v = levels[m, r, c]
+                if r + s < h:
+                    v = min(v, levels[m, r + s, c])
+                    if c + s < w:
+                        v = min(v, levels[m, r + s, c + s])
+                else:
+                    v = min(v, capf)
+                v = min(v, levels[m, r, c + s]) if c + s < w else min(v, capf)
+                levels[m + 1, r, c] = v

@@ -82,12 +82,19 @@ class LikelihoodGrid:
         self.density: F32Array = np.zeros((0, 0), dtype=np.float32)  # Σ of the hits' Gaussians
         self.inserted = 0  # scans inserted
         self._costs: tuple[float, F32Array] | None = None  # (cap, `residual_costs`), a cache
+        # Cells (rows i0:i1, columns j0:j1) whose field changed since the cached cost table was
+        # brought up to date: an insert touches its scan's box, not the whole submap.
+        self._dirty: tuple[int, int, int, int] | None = None
+        self.costs_version = 0  # bumped whenever the cached cost table changes in place ...
+        self._cost_log: list[tuple[int, tuple[int, int, int, int]]] = []  # ... and where
         r = np.arange(-self.radius_cells, self.radius_cells + 1)
         self._di, self._dj = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
 
     def __getstate__(self) -> dict[str, object]:
         state = dict(self.__dict__)
         state["_costs"] = None  # a cache, rebuilt on first use
+        state["_dirty"] = None
+        state["_cost_log"] = []
         return state
 
     # ------------------------------------------------------------------ building
@@ -95,10 +102,12 @@ class LikelihoodGrid:
         """Add every hit's Gaussian to the surface density and renormalise the field around
         them."""
         self.inserted += 1
-        self._costs = None
         if points_map_m.shape[0] == 0:
             return
+        shape = self.values.shape
         self._ensure(points_map_m)
+        if self.values.shape != shape:
+            self._costs = None  # grown: the cost table is rebuilt whole
         res = self.resolution_m
         v, u = self.cell_coords(points_map_m)
         ci, cj = np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)
@@ -133,6 +142,18 @@ class LikelihoodGrid:
         r0, r1 = max(0, i0) - a0, min(h, i1) - a0
         c0, c1 = max(0, j0) - b0, min(w, j1) - b0
         self.values[a0 + r0 : a0 + r1, b0 + c0 : b0 + c1] = field[r0:r1, c0:c1]
+        changed = (a0 + r0, a0 + r1, b0 + c0, b0 + c1)
+        d = self._dirty
+        self._dirty = (
+            changed
+            if d is None
+            else (
+                min(d[0], changed[0]),
+                max(d[1], changed[1]),
+                min(d[2], changed[2]),
+                max(d[3], changed[3]),
+            )
+        )
 
     def _ensure(self, points_map_m: FloatArray) -> None:
         """Grow the grid so every point's stamp fits inside it."""
@@ -215,11 +236,43 @@ class LikelihoodGrid:
         correlative search gathers from it with clipped indices and no other test (it scores
         thousands of poses per scan)."""
         if self._costs is not None and self._costs[0] == max_residual_sigmas:
-            return self._costs[1]
+            costs = self._costs[1]
+            if self._dirty is not None:  # only what the inserts since touched
+                i0, i1, j0, j1 = self._dirty
+                block = np.ascontiguousarray(self.values[i0:i1, j0:j1])
+                costs[i0:i1, j0:j1] = residual_sq(block, max_residual_sigmas)
+                self._cap_border(costs, max_residual_sigmas)
+                self.costs_version += 1
+                self._cost_log = [*self._cost_log[-7:], (self.costs_version, self._dirty)]
+                self._dirty = None
+            return costs
         costs = residual_sq(self.values, max_residual_sigmas).astype(np.float32)
+        self._cap_border(costs, max_residual_sigmas)
+        self._costs = (max_residual_sigmas, costs)
+        self._dirty = None
+        self.costs_version += 1
+        self._cost_log = []
+        return costs
+
+    @staticmethod
+    def _cap_border(costs: F32Array, max_residual_sigmas: float) -> None:
         if costs.size:
             cap = off_surface_cost(max_residual_sigmas)
             costs[[0, -1], :] = cap
             costs[:, [0, -1]] = cap
-        self._costs = (max_residual_sigmas, costs)
-        return costs
+
+    def cost_changes_since(self, version: int) -> tuple[int, int, int, int] | None:
+        """The cells (rows i0:i1, columns j0:j1) of the cached cost table changed in place since
+        `costs_version` was `version` (an empty box if none), or None when that is not known
+        (the table was rebuilt, or too long ago)."""
+        if version == self.costs_version:
+            return (0, 0, 0, 0)
+        since = [box for v, box in self._cost_log if v > version]
+        if len(since) != self.costs_version - version:
+            return None
+        return (
+            min(b[0] for b in since),
+            max(b[1] for b in since),
+            min(b[2] for b in since),
+            max(b[3] for b in since),
+        )

@@ -59,6 +59,10 @@ Interval = tuple[npt.NDArray[np.floating[Any]], npt.NDArray[np.floating[Any]]]  
 # spans more is bounded by the table's global minimum.
 MAX_LEVEL = 6
 # Single poses scored before each level to tighten the bound to beat.
+# A lattice of at most this many poses is scored whole (measured: below it the tree's numpy
+# overhead per level costs more than the poses it prunes), in batches of _DENSE_BATCH.
+_DENSE_MAX_POSES = 2048
+_DENSE_BATCH = 2048
 _PROBES = 4
 # A block is pruned when its bound exceeds the best cost by more than this (relative): the
 # bound and the exact cost sum the same float32 values in different orders.
@@ -91,10 +95,13 @@ class CostPyramid:
         return out
 
 
-def build_pyramid(costs: F32Array, off_surface: float, max_level: int = MAX_LEVEL) -> CostPyramid:
+def build_pyramid(
+    costs: F32Array, off_surface: float, max_level: int = MAX_LEVEL, margin: int = 0
+) -> CostPyramid:
     """The min-pyramid of a cost table whose border cells (and everything off it) cost
-    `off_surface`."""
-    pad = 1 << max_level
+    `off_surface`, over the cells that do not cost it padded by the largest window and
+    `margin` more (room for later inserts: a crop of more cap cells looks up the same)."""
+    pad = (1 << max_level) + margin
     differs = costs != np.float32(off_surface)
     rows_any, cols_any = np.flatnonzero(differs.any(axis=1)), np.flatnonzero(differs.any(axis=0))
     if rows_any.size:
@@ -107,7 +114,7 @@ def build_pyramid(costs: F32Array, off_surface: float, max_level: int = MAX_LEVE
     levels = flat[:-1].reshape(max_level + 1, height, width)
     levels[0].fill(np.float32(off_surface))
     levels[0, pad : pad + r1 - r0, pad : pad + c1 - c0] = costs[r0:r1, c0:c1]
-    for m in range(max_level):
+    for m in range(max_level):  # whole levels: numpy's vectorised minima beat a loop here
         s = 1 << m
         src, dst = levels[m], levels[m + 1]
         # Rows then columns: the window doubles in each. Cells past the crop's end cost the cap.
@@ -120,20 +127,64 @@ def build_pyramid(costs: F32Array, off_surface: float, max_level: int = MAX_LEVE
     return CostPyramid(flat, r0 - pad, c0 - pad, height, width, max_level)
 
 
-# Per grid: (the cost table the pyramid was built from, the pyramid). Weak keys: a submap that
-# is dropped takes its pyramid with it.
-_PYRAMIDS: weakref.WeakKeyDictionary[LikelihoodGrid, tuple[F32Array, CostPyramid]] = (
+def update_pyramid(
+    pyramid: CostPyramid, costs: F32Array, off_surface: float, box: tuple[int, int, int, int]
+) -> bool:
+    """Bring `pyramid` up to date in place after `costs` changed in rows i0:i1, columns j0:j1
+    (`box`); False (nothing done) when a cell that does not cost the cap now lies where the
+    crop cannot hold it: the pyramid must be rebuilt."""
+    i0, i1, j0, j1 = box
+    if i0 >= i1 or j0 >= j1:
+        return True
+    pad = 1 << pyramid.max_level
+    differs = costs[i0:i1, j0:j1] != np.float32(off_surface)
+    rows_any, cols_any = np.flatnonzero(differs.any(axis=1)), np.flatnonzero(differs.any(axis=0))
+    if rows_any.size and (
+        i0 + int(rows_any[0]) < pyramid.row0 + pad
+        or i0 + int(rows_any[-1]) >= pyramid.row0 + pyramid.height - pad
+        or j0 + int(cols_any[0]) < pyramid.col0 + pad
+        or j0 + int(cols_any[-1]) >= pyramid.col0 + pyramid.width - pad
+    ):
+        return False
+    # Cells of the box off the crop cost the cap, before and after: only the overlap changes.
+    r0, r1 = max(i0, pyramid.row0), min(i1, pyramid.row0 + pyramid.height)
+    c0, c1 = max(j0, pyramid.col0), min(j1, pyramid.col0 + pyramid.width)
+    if r0 >= r1 or c0 >= c1:
+        return True
+    flat = pyramid.flat
+    levels = flat[:-1].reshape(pyramid.max_level + 1, pyramid.height, pyramid.width)
+    a0, a1, b0, b1 = r0 - pyramid.row0, r1 - pyramid.row0, c0 - pyramid.col0, c1 - pyramid.col0
+    levels[0, a0:a1, b0:b1] = costs[r0:r1, c0:c1]
+    kernels.pyramid_update(levels, off_surface, a0, a1, b0, b1)
+    flat[-1] = min(float(levels[0].min()), off_surface)
+    return True
+
+
+# Cells of cap added around a rebuilt pyramid's crop, so that the next inserts (a robot moving
+# into what its submap has not seen) update it in place rather than rebuild it.
+_CROP_MARGIN = 96
+
+# Per grid: (the cost table the pyramid was built from, its version, the pyramid). Weak keys: a
+# submap that is dropped takes its pyramid with it.
+_PYRAMIDS: weakref.WeakKeyDictionary[LikelihoodGrid, tuple[F32Array, int, CostPyramid]] = (
     weakref.WeakKeyDictionary()
 )
 
 
 def pyramid_of(grid: LikelihoodGrid, costs: F32Array, off_surface: float) -> CostPyramid:
-    """The grid's pyramid of `costs` (its current `residual_costs`), built on first use."""
+    """The grid's pyramid of `costs` (its current `residual_costs`): built on first use, then
+    updated over the cells each insert changed (`LikelihoodGrid.cost_changes_since`)."""
     cached = _PYRAMIDS.get(grid)
+    version = grid.costs_version
     if cached is not None and cached[0] is costs:
-        return cached[1]
-    pyramid = build_pyramid(costs, off_surface)
-    _PYRAMIDS[grid] = (costs, pyramid)
+        if cached[1] == version:
+            return cached[2]
+        box = grid.cost_changes_since(cached[1])
+        if box is not None and update_pyramid(cached[2], costs, off_surface, box):
+            _PYRAMIDS[grid] = (costs, version, cached[2])
+            return cached[2]
+    pyramid = build_pyramid(costs, off_surface, margin=_CROP_MARGIN)
+    _PYRAMIDS[grid] = (costs, version, pyramid)
     return pyramid
 
 
@@ -344,6 +395,22 @@ def lattice_search(
         i = int(np.lexsort((b, a, k, cost))[0])
         key = (float(cost[i]), int(k[i]), int(a[i]), int(b[i]))
         best_key = min(best_key, key)
+
+    if n_rot * n_rows * n_cols <= _DENSE_MAX_POSES:
+        # A small lattice (40 Hz: a few cells, a few dozen rotations): every pose scored in
+        # one batch costs less than the tree's levels of small batches, and is the brute force.
+        k, a, b = (
+            g.ravel().astype(np.int64)
+            for g in np.meshgrid(
+                np.arange(n_rot), np.arange(n_rows), np.arange(n_cols), indexing="ij"
+            )
+        )
+        for lo in range(0, k.shape[0], _DENSE_BATCH):
+            consider(
+                k[lo : lo + _DENSE_BATCH], a[lo : lo + _DENSE_BATCH], b[lo : lo + _DENSE_BATCH]
+            )
+        _, kb, ab, bb = best_key
+        return kb, ab - lat.half_rows, bb - lat.half_cols, scored
 
     # The pose at the prediction: a first bound to beat.
     k_pred = int(np.argmin(np.abs(_wrap(lat.thetas_rad - lat.predicted_theta_rad))))
