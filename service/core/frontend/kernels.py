@@ -257,3 +257,94 @@ def pyramid_update(  # noqa: PLR0917 - numba takes no keyword-only arguments
                     v = min(v, capf)
                 v = min(v, levels[m, r, c + s]) if c + s < w else min(v, capf)
                 levels[m + 1, r, c] = v
+
+
+@_jit
+def stamp_arguments(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    v: FloatArray,
+    u: FloatArray,
+    ci: IntArray,
+    cj: IntArray,
+    di: IntArray,
+    dj: IntArray,
+    res_sq: float,
+    sigma_sq: float,
+) -> FloatArray:
+    """`LikelihoodGrid.insert`'s exponents -d²/2σ² of every hit at every cell of its stamp,
+    (N·K,), hit-major (the exp is left to numpy: its own vectorised exp)."""
+    n, k_n = v.shape[0], di.shape[0]
+    out = np.empty(n * k_n)
+    for p in range(n):
+        for k in range(k_n):
+            dv = np.float64(ci[p] + di[k]) - v[p]
+            du = np.float64(cj[p] + dj[k]) - u[p]
+            out[p * k_n + k] = -0.5 * ((dv * dv + du * du) * res_sq) / sigma_sq
+    return out
+
+
+@_jit
+def stamp_cells(
+    ci: IntArray, cj: IntArray, di: IntArray, dj: IntArray, width: int
+) -> tuple[IntArray, IntArray, IntArray]:
+    """The stamps' cells grouped by cell: (order, cells, starts) with `order` the stable argsort
+    of the flat cell indices (hit-major, as `stamp_arguments`), `cells` the distinct ones
+    ascending, `starts` where each begins in the sorted order. A counting sort over the
+    stamps' box: the same permutation as numpy's stable sort, in linear time."""
+    n, k_n = ci.shape[0], di.shape[0]
+    i_lo, i_hi = ci.min() + di.min(), ci.max() + di.max()
+    j_lo, j_hi = cj.min() + dj.min(), cj.max() + dj.max()
+    bw = j_hi - j_lo + 1
+    counts = np.zeros((i_hi - i_lo + 1) * bw + 1, dtype=np.int64)
+    keys = np.empty(n * k_n, dtype=np.int64)
+    for p in range(n):
+        for k in range(k_n):
+            key = (ci[p] + di[k] - i_lo) * bw + (cj[p] + dj[k] - j_lo)
+            keys[p * k_n + k] = key
+            counts[key + 1] += 1
+    distinct = 0
+    for b in range(1, counts.shape[0]):
+        if counts[b] > 0:
+            distinct += 1
+        counts[b] += counts[b - 1]
+    cells = np.empty(distinct, dtype=np.int64)
+    starts = np.empty(distinct, dtype=np.int64)
+    d = 0
+    for b in range(counts.shape[0] - 1):
+        if counts[b + 1] > counts[b]:
+            cells[d] = (b // bw + i_lo) * width + (b % bw + j_lo)
+            starts[d] = counts[b]
+            d += 1
+    order = np.empty(n * k_n, dtype=np.int64)
+    for idx in range(n * k_n):
+        key = keys[idx]
+        order[counts[key]] = idx
+        counts[key] += 1
+    return order, cells, starts
+
+
+@_jit
+def normalise(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    density: F32Array, values: F32Array, rad: int, i0: int, i1: int, j0: int, j1: int
+) -> None:
+    """`LikelihoodGrid._normalise` over rows i0:i1, columns j0:j1 (within the grid): the field
+    = density / its maximum over the (2·rad + 1)² window (clipped to the grid), 0 where that
+    maximum is at most 1e-3. Maxima are exact in any order; the division is float32's."""
+    h, w = density.shape
+    a0, a1 = max(0, i0 - rad), min(h, i1 + rad)
+    floor = np.float32(1e-3)
+    rows = np.zeros((a1 - a0, j1 - j0), dtype=np.float32)  # max along each row's window
+    for i in range(a0, a1):
+        for j in range(j0, j1):
+            m = np.float32(0.0)
+            for jj in range(max(0, j - rad), min(w, j + rad + 1)):
+                m = max(m, density[i, jj])
+            rows[i - a0, j - j0] = m
+    for i in range(i0, i1):
+        for j in range(j0, j1):
+            peak = np.float32(0.0)
+            for ii in range(max(a0, i - rad), min(a1, i + rad + 1)):
+                peak = max(peak, rows[ii - a0, j - j0])
+            if peak > floor:
+                values[i, j] = density[i, j] / max(peak, floor)
+            else:
+                values[i, j] = np.float32(0.0)

@@ -23,20 +23,12 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from service.core.maps.submaps import sliding_max
+from service.core.frontend import kernels
 from service.core.types import FloatArray
 
 F32Array = npt.NDArray[np.float32]
 
 _GROW_CELLS = 128  # margin added on each side when a hit falls outside (6.4 m at 5 cm)
-
-
-def _local_max(grid: F32Array, radius: int) -> F32Array:
-    """out[i, j] = max of grid (≥ 0) over the (2·radius + 1)² window centred on (i, j): the
-    anchored `sliding_max` of the grid shifted by `radius` (zeros before it change no maximum)."""
-    h, w = grid.shape
-    shifted = np.pad(grid, ((radius, 0), (radius, 0)))
-    return sliding_max(shifted, 2 * radius + 1)[:h, :w]
 
 
 def residual_sq(field: npt.NDArray[np.floating], max_residual_sigmas: float) -> FloatArray:
@@ -111,16 +103,15 @@ class LikelihoodGrid:
         res = self.resolution_m
         v, u = self.cell_coords(points_map_m)
         ci, cj = np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)
-        ii = ci[:, None] + self._di[None, :]
-        jj = cj[:, None] + self._dj[None, :]
-        d2 = ((ii - v[:, None]) ** 2 + (jj - u[:, None]) ** 2) * (res * res)
-        val = np.exp(-0.5 * d2 / self.hit_sigma_m**2).ravel()
-        flat = (ii * self.values.shape[1] + jj).ravel()
-        order = np.argsort(flat, kind="stable")
-        cells = flat[order]
-        starts = np.flatnonzero(np.diff(cells, prepend=-1))
+        # Each hit's Gaussian at every cell of its stamp, summed per cell in hit order (the
+        # grouping is compiled; the exp and the sums stay numpy's, so the same bits).
+        arg = kernels.stamp_arguments(
+            v, u, ci, cj, self._di, self._dj, res * res, self.hit_sigma_m**2
+        )
+        val = np.exp(arg)
+        order, cells, starts = kernels.stamp_cells(ci, cj, self._di, self._dj, self.values.shape[1])
         added = np.add.reduceat(val[order], starts)
-        self.density.reshape(-1)[cells[starts]] += added.astype(np.float32)
+        self.density.reshape(-1)[cells] += added.astype(np.float32)
         rad = self.radius_cells
         self._normalise(
             int(ci.min()) - rad,
@@ -132,17 +123,9 @@ class LikelihoodGrid:
     def _normalise(self, i0: int, i1: int, j0: int, j1: int) -> None:
         """field = density / its maximum within the stamp radius, over rows i0:i1, columns
         j0:j1: the surface's profile across it, peaking at 1 on the mean of its hits."""
-        rad = self.radius_cells
         h, w = self.values.shape
-        a0, a1 = max(0, i0 - rad), min(h, i1 + rad)
-        b0, b1 = max(0, j0 - rad), min(w, j1 + rad)
-        block = self.density[a0:a1, b0:b1]
-        peak = _local_max(block, rad)
-        field = np.where(peak > 1e-3, block / np.maximum(peak, 1e-3), 0.0).astype(np.float32)
-        r0, r1 = max(0, i0) - a0, min(h, i1) - a0
-        c0, c1 = max(0, j0) - b0, min(w, j1) - b0
-        self.values[a0 + r0 : a0 + r1, b0 + c0 : b0 + c1] = field[r0:r1, c0:c1]
-        changed = (a0 + r0, a0 + r1, b0 + c0, b0 + c1)
+        changed = (max(0, i0), min(h, i1), max(0, j0), min(w, j1))
+        kernels.normalise(self.density, self.values, self.radius_cells, *changed)
         d = self._dirty
         self._dirty = (
             changed
