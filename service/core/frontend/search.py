@@ -399,18 +399,17 @@ def lattice_search(
     if n_rot * n_rows * n_cols <= _DENSE_MAX_POSES:
         # A small lattice (40 Hz: a few cells, a few dozen rotations): every pose scored in
         # one batch costs less than the tree's levels of small batches, and is the brute force.
-        k, a, b = (
+        grid_k, grid_a, grid_b = (
             g.ravel().astype(np.int64)
             for g in np.meshgrid(
                 np.arange(n_rot), np.arange(n_rows), np.arange(n_cols), indexing="ij"
             )
         )
-        for lo in range(0, k.shape[0], _DENSE_BATCH):
-            consider(
-                k[lo : lo + _DENSE_BATCH], a[lo : lo + _DENSE_BATCH], b[lo : lo + _DENSE_BATCH]
-            )
-        _, kb, ab, bb = best_key
-        return kb, ab - lat.half_rows, bb - lat.half_cols, scored
+        for lo in range(0, grid_k.shape[0], _DENSE_BATCH):
+            hi = lo + _DENSE_BATCH
+            consider(grid_k[lo:hi], grid_a[lo:hi], grid_b[lo:hi])
+        _, k, a, b = best_key
+        return k, a - lat.half_rows, b - lat.half_cols, scored
 
     # The pose at the prediction: a first bound to beat.
     k_pred = int(np.argmin(np.abs(_wrap(lat.thetas_rad - lat.predicted_theta_rad))))
