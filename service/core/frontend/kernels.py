@@ -175,44 +175,85 @@ def lattice_gather(  # noqa: PLR0917 - numba takes no keyword-only arguments
 
 
 @_jit
-def block_scan_bounds(  # noqa: PLR0917 - numba takes no keyword-only arguments
+def _square_bound(lo: float, hi: float) -> float:
+    """min of t² over [lo, hi]."""
+    if lo <= 0.0 <= hi:
+        return 0.0
+    return min(lo * lo, hi * hi)
+
+
+@_jit
+def _product_bound(coef: float, p_lo: float, p_hi: float, q_lo: float, q_hi: float) -> float:
+    """min of coef·p·q over the box: at a corner."""
+    return min(coef * p_lo * q_lo, coef * p_lo * q_hi, coef * p_hi * q_lo, coef * p_hi * q_hi)
+
+
+@_jit
+def _huber_cost(z: float, huber: float) -> float:
+    a = abs(z)
+    return z * z if a <= huber else 2.0 * huber * a - huber * huber
+
+
+@_jit
+def block_bounds(  # noqa: PLR0917 - numba takes no keyword-only arguments
     flat: F32Array,
-    row0: int,
-    col0: int,
-    height: int,
-    width: int,
-    max_level: int,
-    px: FloatArray,
-    py: FloatArray,
+    pyramid_shape: IntArray,
+    pts: FloatArray,
     range_m: FloatArray,
-    mid: FloatArray,
-    half: FloatArray,
+    thetas: FloatArray,
+    dt_k: FloatArray,
+    wall_z_k: FloatArray,
+    k0: IntArray,
+    k1: IntArray,
     row_off: IntArray,
     col_off: IntArray,
     rows_n: IntArray,
     cols_n: IntArray,
-    tx: float,
-    ty: float,
-    origin_x: float,
-    origin_y: float,
-    res: float,
+    frame: FloatArray,
+    info: FloatArray,
 ) -> FloatArray:
-    """`search._Problem.bound`'s scan term without the weight: per block, the mean over points
-    of the pyramid's minimum over a square holding every cell the point can reach in the block
-    (rotation `mid` ± `half`, first cell offset (row_off, col_off), rows_n × cols_n offsets).
-    A bound, so its summation order is free (the search's slack covers it)."""
-    m_n = mid.shape[0]
-    n = px.shape[0]
+    """`search._Problem.bound`: per block (rotations k0..k1, cell offsets from (row_off,
+    col_off), rows_n × cols_n of them) a lower bound of every pose's cost in it:
+    - scan: per point, where it can be over the block's rotations (within |p|·δ of the middle
+      rotation's place, plus slack for the brute force's own rounding) widened by the block's
+      translations; the pyramid's minimum over a square that holds that; their mean, weighed;
+    - motion prior: the quadratic's terms bounded one by one over the block's (dx, dy, dθ) box;
+    - walls: Huber at the block's angle nearest the walls' heading (`wall_z_k`: per rotation,
+      its offset from that heading in σ; empty without the prior).
+    `pyramid_shape` = (row0, col0, height, width, max_level); `frame` = (predicted x, y, grid
+    origin x, y, resolution, scan weight, Huber). Bounds, so the order of their sums is free
+    (the search's slack covers it)."""
+    row0, col0, height, width, max_level = (
+        pyramid_shape[0],
+        pyramid_shape[1],
+        pyramid_shape[2],
+        pyramid_shape[3],
+        pyramid_shape[4],
+    )
+    tx, ty, origin_x, origin_y, res, weight, huber = (
+        frame[0],
+        frame[1],
+        frame[2],
+        frame[3],
+        frame[4],
+        frame[5],
+        frame[6],
+    )
+    m_n = k0.shape[0]
+    n = pts.shape[0]
     out = np.empty(m_n)
     global_min = flat[flat.shape[0] - 1]
     for m in range(m_n):
-        c = math.cos(mid[m])
-        s = math.sin(mid[m])
-        h = half[m] / res
+        t0, t1 = thetas[k0[m]], thetas[k1[m]]
+        mid = 0.5 * (t0 + t1)
+        c = math.cos(mid)
+        s = math.sin(mid)
+        h = 0.5 * (t1 - t0) / res
         total = 0.0
         for i in range(n):
-            u = (c * px[i] - s * py[i] + tx - origin_x) / res - 0.5
-            v = (s * px[i] + c * py[i] + ty - origin_y) / res - 0.5
+            px, py = pts[i, 0], pts[i, 1]
+            u = (c * px - s * py + tx - origin_x) / res - 0.5
+            v = (s * px + c * py + ty - origin_y) / res - 0.5
             reach = range_m[i] * h + 1e-6
             lo_c = int(np.rint(u - reach))
             lo_r = int(np.rint(v - reach))
@@ -225,10 +266,27 @@ def block_scan_bounds(  # noqa: PLR0917 - numba takes no keyword-only arguments
             if level > max_level:
                 total += global_min
                 continue
-            r = _clamp(lo_r + row_off[m] - row0, 0, height - 1)
-            cc = _clamp(lo_c + col_off[m] - col0, 0, width - 1)
+            r = min(max(lo_r + row_off[m] - row0, 0), height - 1)
+            cc = min(max(lo_c + col_off[m] - col0, 0), width - 1)
             total += flat[(level * height + r) * width + cc]
-        out[m] = total / max(n, 1)
+        scan = weight * (total / max(n, 1))
+        x_lo, x_hi = col_off[m] * res, (col_off[m] + cols_n[m] - 1) * res
+        y_lo, y_hi = row_off[m] * res, (row_off[m] + rows_n[m] - 1) * res
+        d_lo, d_hi = dt_k[k0[m]], dt_k[k1[m]]
+        prior = (
+            info[0, 0] * _square_bound(x_lo, x_hi)
+            + info[1, 1] * _square_bound(y_lo, y_hi)
+            + info[2, 2] * _square_bound(d_lo, d_hi)
+            + _product_bound(2.0 * info[0, 1], x_lo, x_hi, y_lo, y_hi)
+            + _product_bound(2.0 * info[0, 2], x_lo, x_hi, d_lo, d_hi)
+            + _product_bound(2.0 * info[1, 2], y_lo, y_hi, d_lo, d_hi)
+        )
+        wall = 0.0
+        if wall_z_k.shape[0]:
+            z0, z1 = wall_z_k[k0[m]], wall_z_k[k1[m]]
+            nearest = 0.0 if z0 * z1 <= 0.0 else min(abs(z0), abs(z1))
+            wall = _huber_cost(nearest, huber)
+        out[m] = scan + max(prior, 0.0) + wall  # the prior's Λ is positive semi-definite
     return out
 
 

@@ -43,7 +43,6 @@ from __future__ import annotations
 import math
 import weakref
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -53,7 +52,6 @@ from service.core.frontend.likelihood import F32Array, LikelihoodGrid
 from service.core.types import FloatArray
 
 IntArray = npt.NDArray[np.int64]
-Interval = tuple[npt.NDArray[np.floating[Any]], npt.NDArray[np.floating[Any]]]  # (lo, hi)
 
 # The largest pyramid level: windows of 2^6 = 64 cells (3.2 m at 5 cm). A point whose block
 # spans more is bounded by the table's global minimum.
@@ -233,6 +231,30 @@ class _Problem:
         self.n_rot = lat.thetas_rad.shape[0]
         self.n_rows, self.n_cols = 2 * lat.half_rows + 1, 2 * lat.half_cols + 1
         self.has_wall = lat.wall_heading_rad is not None and math.isfinite(lat.wall_sigma_rad)
+        # Per rotation, once: its offset from the prediction, and from the walls' heading (σ)
+        # with the wall cost there (elementwise, so the same bits as computed pose by pose).
+        self.dt = _wrap(lat.thetas_rad - lat.predicted_theta_rad)
+        self.wall_z = np.zeros(0)
+        self.wall_cost = np.zeros(0)
+        if self.has_wall:
+            assert lat.wall_heading_rad is not None
+            self.wall_z = _wrap(lat.thetas_rad - lat.wall_heading_rad) / lat.wall_sigma_rad
+            self.wall_cost = _huber(self.wall_z, lat.wall_huber)
+        self.pts = np.ascontiguousarray(pts)
+        self.pyramid_shape = np.array(
+            [pyramid.row0, pyramid.col0, pyramid.height, pyramid.width, pyramid.max_level]
+        )
+        self.frame = np.array(
+            [
+                lat.predicted_xy_m[0],
+                lat.predicted_xy_m[1],
+                self.origin[0],
+                self.origin[1],
+                self.res,
+                lat.scan_weight,
+                lat.wall_huber,
+            ]
+        )
 
     # ------------------------------------------------------------------ single poses
     def exact(self, k: IntArray, a: IntArray, b: IntArray) -> FloatArray:
@@ -261,7 +283,7 @@ class _Problem:
         scan = lat.scan_weight * looked_up.mean(axis=1, dtype=np.float64)
         info = lat.info_pred
         dx, dy = dj * res, di * res
-        dt = _wrap(lat.thetas_rad[k] - lat.predicted_theta_rad)
+        dt = self.dt[k]
         prior = (
             info[0, 0] * dx * dx
             + info[1, 1] * dy * dy
@@ -272,101 +294,36 @@ class _Problem:
         )
         total: FloatArray = scan + prior
         if self.has_wall:
-            assert lat.wall_heading_rad is not None
-            z = _wrap(lat.thetas_rad[k] - lat.wall_heading_rad) / lat.wall_sigma_rad
-            total = total + _huber(z, lat.wall_huber)
+            total = total + self.wall_cost[k]
         return total
 
     # ------------------------------------------------------------------ blocks
     def bound(self, k0: IntArray, a0: IntArray, b0: IntArray, ka: int, d: int) -> FloatArray:
         """A lower bound of the cost over each block: rotations k0 .. k0+2^ka-1, row offsets
-        a0 .. a0+2^d-1, column offsets b0 .. b0+2^d-1 (each clipped to the lattice)."""
-        lat, res = self.lat, self.res
+        a0 .. a0+2^d-1, column offsets b0 .. b0+2^d-1 (each clipped to the lattice)
+        (`kernels.block_bounds`: the scan term, the motion prior's, the walls')."""
+        lat = self.lat
         k1 = np.minimum(k0 + (1 << ka), self.n_rot) - 1
         a1 = np.minimum(a0 + (1 << d), self.n_rows) - 1
         b1 = np.minimum(b0 + (1 << d), self.n_cols) - 1
-        t0, t1 = lat.thetas_rad[k0], lat.thetas_rad[k1]
-        mid, half = 0.5 * (t0 + t1), 0.5 * (t1 - t0)
-        # Per point: where it can be over the block's rotations, within |p|·δ of the middle's
-        # place (plus slack for the brute force's own rounding of the same positions), widened
-        # by the block's translations; the pyramid's minimum over a square that holds that.
-        pyr = self.pyr
-        mean = kernels.block_scan_bounds(
-            pyr.flat,
-            pyr.row0,
-            pyr.col0,
-            pyr.height,
-            pyr.width,
-            pyr.max_level,
-            self.px,
-            self.py,
+        bound: FloatArray = kernels.block_bounds(
+            self.pyr.flat,
+            self.pyramid_shape,
+            self.pts,
             self.range_m,
-            mid,
-            half,
+            lat.thetas_rad,
+            self.dt,
+            self.wall_z,
+            k0,
+            k1,
             a0 - lat.half_rows,
             b0 - lat.half_cols,
             a1 - a0 + 1,
             b1 - b0 + 1,
-            lat.predicted_xy_m[0],
-            lat.predicted_xy_m[1],
-            self.origin[0],
-            self.origin[1],
-            res,
-        )
-        scan = lat.scan_weight * mean
-        bound: FloatArray = (
-            scan + self._prior_bound((k0, k1), (a0, a1), (b0, b1)) + self._wall_bound(t0, t1)
+            self.frame,
+            lat.info_pred,
         )
         return bound
-
-    def _prior_bound(
-        self,
-        k: tuple[IntArray, IntArray],
-        a: tuple[IntArray, IntArray],
-        b: tuple[IntArray, IntArray],
-    ) -> FloatArray:
-        """Lower bound of (dx, dy, dθ) Λ (dx, dy, dθ)ᵀ over each block's box, term by term."""
-        lat, res, info = self.lat, self.res, self.lat.info_pred
-        x = ((b[0] - lat.half_cols) * res, (b[1] - lat.half_cols) * res)
-        y = ((a[0] - lat.half_rows) * res, (a[1] - lat.half_rows) * res)
-        t = (
-            _wrap(lat.thetas_rad[k[0]] - lat.predicted_theta_rad),
-            _wrap(lat.thetas_rad[k[1]] - lat.predicted_theta_rad),
-        )
-
-        def square(lo_hi: Interval) -> FloatArray:
-            lo, hi = lo_hi
-            out: FloatArray = np.where((lo <= 0.0) & (hi >= 0.0), 0.0, np.minimum(lo * lo, hi * hi))
-            return out
-
-        def product(coef: float, p: Interval, q: Interval) -> FloatArray:
-            corners = [coef * pi * qj for pi in p for qj in q]
-            out: FloatArray = np.minimum(
-                np.minimum(corners[0], corners[1]), np.minimum(*corners[2:])
-            )
-            return out
-
-        total = (
-            info[0, 0] * square(x)
-            + info[1, 1] * square(y)
-            + info[2, 2] * square(t)
-            + product(2.0 * info[0, 1], x, y)
-            + product(2.0 * info[0, 2], x, t)
-            + product(2.0 * info[1, 2], y, t)
-        )
-        out: FloatArray = np.maximum(total, 0.0)  # Λ is positive semi-definite
-        return out
-
-    def _wall_bound(self, t0: FloatArray, t1: FloatArray) -> FloatArray | float:
-        """The wall cost at each block's angle nearest the walls' heading (0 if it spans it)."""
-        lat = self.lat
-        if not self.has_wall:
-            return 0.0
-        assert lat.wall_heading_rad is not None
-        z0 = _wrap(t0 - lat.wall_heading_rad) / lat.wall_sigma_rad
-        z1 = _wrap(t1 - lat.wall_heading_rad) / lat.wall_sigma_rad
-        nearest = np.where(z0 * z1 <= 0.0, 0.0, np.minimum(np.abs(z0), np.abs(z1)))
-        return _huber(nearest, lat.wall_huber)
 
 
 def lattice_search(
