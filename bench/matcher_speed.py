@@ -14,6 +14,9 @@ between the two over the whole sequence (the exactness check), e.g. against the 
 
     mkdir -p /tmp/head && git archive HEAD service | tar -x -C /tmp/head
     python -m bench.matcher_speed --aces 0 --paper 300 --live 800 --against /tmp/head
+
+`--accuracy H [H ...]`: instead, the front end alone over the whole of ACES and Intel for each
+`MatchOptions.refine_halvings` H: relation errors (all, and under 5 s) and ms per scan.
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ import numpy as np
 
 from bench.profile_estimator import aces_scans, live_scans, synthetic_scans
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
-from service.core.types import LaserScan
+from service.core.types import LaserScan, Pose2D
 
 log = logging.getLogger(__name__)
 
@@ -85,6 +88,41 @@ def sequences(a: argparse.Namespace) -> dict[str, list[LaserScan]]:
     return {k: v for k, v in seqs.items() if v}
 
 
+def accuracy(halvings: list[int]) -> None:
+    """The front end alone (no odometry, no loop closure) over the whole of ACES and Intel, for
+    each `MatchOptions.refine_halvings`: the relation error (Kümmerle et al.), all relations and
+    those under 5 s (local), as `bench.evaluate` measures it, and the median ms per scan."""
+    from bench.evaluate import LOCAL_RELATION_S, REAL_DATASETS, _match_relations
+    from clients.logs import iter_log_scans
+    from service.bridge import scan_to_laser
+    from service.core.frontend.matcher import MatchOptions
+    from service.core.metrics import parse_relations, relation_errors
+
+    for dataset in REAL_DATASETS:
+        if not dataset.bag.exists():
+            continue
+        scans = [
+            scan_to_laser(s, use_odometry=False)
+            for s in iter_log_scans(dataset.bag, use_odom=False)
+        ]
+        relations = parse_relations(dataset.relations.read_text().splitlines())
+        for h in halvings:
+            params = MatcherParams(use_odometry=False, match=MatchOptions(refine_halvings=h))
+            times, poses = run([ScanMatcherFrontEnd(params)], scans)
+            stamps = [s.stamp_ns for s in scans]
+            kept, _ = _match_relations(stamps, relations)
+            local = [r for r in kept if abs(r.t2_s - r.t1_s) < LOCAL_RELATION_S]
+            est = [Pose2D(*p) for p in poses[0]]
+            e_all, e_local = relation_errors(stamps, est, kept), relation_errors(stamps, est, local)
+            print(
+                f"{dataset.name:6s} refine_halvings {h}: relations {e_all.trans_mean_m:.4f} ± "
+                f"{e_all.trans_std_m:.4f} m, {e_all.rot_mean_deg:.3f}° | local (< 5 s) "
+                f"{e_local.trans_mean_m:.4f} m, {e_local.rot_mean_deg:.3f}° | median "
+                f"{np.median(times[0]):.3f} ms/scan ({len(scans)} scans)",
+                flush=True,
+            )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--aces", type=int, default=0, help="ACES scans (0: all, -1: none)")
@@ -92,8 +130,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--live", type=int, default=800)
     ap.add_argument("--against", type=Path, help="source tree of another version")
     ap.add_argument("--profile", action="store_true", help="cProfile top 25 of ours")
+    ap.add_argument(
+        "--accuracy",
+        type=int,
+        nargs="+",
+        metavar="HALVINGS",
+        help="instead: relation errors on ACES and Intel for these refine_halvings",
+    )
     a = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
+    if a.accuracy:
+        accuracy(a.accuracy)
+        return 0
     other = load_front_end(a.against) if a.against is not None else None
     # Compile and warm whatever is compiled on first use, outside the timing.
     warm = synthetic_scans(3)

@@ -53,6 +53,10 @@ class MatchOptions:
     search_max_rad: float = math.radians(25.0)
     search_points: int = 200  # scan points scored by the search (evenly subsampled)
     refine_iterations: int = 12
+    # A Gauss-Newton step that raises the cost is halved at most this many times before the
+    # refine stops; each halving is one more evaluation of the scan. 2 is 10 % faster per scan
+    # but Intel's local rotation error grows (docs/matcher.md, "Speed"): 6 is kept.
+    refine_halvings: int = 6
     wall_huber: float = 2.0  # the wall prior's residual is linear beyond this many σ
 
 
@@ -266,7 +270,7 @@ def refine(
     for _ in range(opts.refine_iterations):
         step = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
         accepted = False
-        for _half in range(6):  # a step that raises the cost is halved
+        for _half in range(opts.refine_halvings):  # a step that raises the cost is halved
             cand = Pose2D(
                 float(pose.x_m + step[0]),
                 float(pose.y_m + step[1]),

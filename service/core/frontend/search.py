@@ -32,10 +32,13 @@ bound is below the best pose found so far:
   slack), so ties survive, and ties are broken as the brute force breaks them: lowest rotation
   index, then row-major translation.
 
-The pyramid is per submap and cost table: it is built on first use after the submap changed and
-cached beside the grid (held weakly, keyed to the identity of the grid's cached cost table, which
-an insert replaces). It is built over the bounding box of the cells that do not cost the cap
-value, padded by the largest block: outside that box every window holds only cells at the cap.
+The pyramid is per submap: built on a submap's first search and cached beside the grid (held
+weakly), then updated in place over the box each insert changed
+(`LikelihoodGrid.cost_changes_since`; minima are exact in any order: a rebuild's values). It
+is built over the bounding box of the cells that do not cost the cap value, padded by the
+largest block and a margin for later inserts: outside that box every window holds only cells
+at the cap. A lattice small enough (40 Hz) is scored whole instead. The inner loops are
+compiled (`kernels`).
 """
 
 from __future__ import annotations
