@@ -386,23 +386,20 @@ def normalise(  # noqa: PLR0917 - numba takes no keyword-only arguments
 ) -> None:
     """`LikelihoodGrid._normalise` over rows i0:i1, columns j0:j1 (within the grid): the field
     = density / its maximum over the (2·rad + 1)² window (clipped to the grid), 0 where that
-    maximum is at most 1e-3. Maxima are exact in any order; the division is float32's."""
+    maximum is at most 1e-3. Where the density is 0 (most of a scan's box: open space) so is
+    the field, whatever the maximum, so the window is read only where it is not. Maxima are
+    exact in any order; the division is float32's."""
     h, w = density.shape
-    a0, a1 = max(0, i0 - rad), min(h, i1 + rad)
     floor = np.float32(1e-3)
-    rows = np.zeros((a1 - a0, j1 - j0), dtype=np.float32)  # max along each row's window
-    for i in range(a0, a1):
-        for j in range(j0, j1):
-            m = np.float32(0.0)
-            for jj in range(max(0, j - rad), min(w, j + rad + 1)):
-                m = max(m, density[i, jj])
-            rows[i - a0, j - j0] = m
     for i in range(i0, i1):
+        r0, r1 = max(0, i - rad), min(h, i + rad + 1)
         for j in range(j0, j1):
-            peak = np.float32(0.0)
-            for ii in range(max(a0, i - rad), min(a1, i + rad + 1)):
-                peak = max(peak, rows[ii - a0, j - j0])
-            if peak > floor:
-                values[i, j] = density[i, j] / max(peak, floor)
-            else:
+            d = density[i, j]
+            if not d > 0.0:
                 values[i, j] = np.float32(0.0)
+                continue
+            peak = d
+            for ii in range(r0, r1):
+                for jj in range(max(0, j - rad), min(w, j + rad + 1)):
+                    peak = max(peak, density[ii, jj])
+            values[i, j] = d / max(peak, floor) if peak > floor else np.float32(0.0)

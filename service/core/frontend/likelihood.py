@@ -89,6 +89,13 @@ class LikelihoodGrid:
         state["_cost_log"] = []
         return state
 
+    def __setstate__(self, state: dict[str, object]) -> None:
+        # The caches start empty, also in a checkpoint written before they existed.
+        self.__dict__.update(state)
+        self._costs, self._dirty, self._cost_log = None, None, []
+        version = state.get("costs_version", 0)
+        self.costs_version = version if isinstance(version, int) else 0
+
     # ------------------------------------------------------------------ building
     def insert(self, points_map_m: FloatArray) -> None:
         """Add every hit's Gaussian to the surface density and renormalise the field around
