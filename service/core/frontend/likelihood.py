@@ -23,20 +23,12 @@ import math
 import numpy as np
 import numpy.typing as npt
 
-from service.core.maps.submaps import sliding_max
+from service.core.frontend import kernels
 from service.core.types import FloatArray
 
 F32Array = npt.NDArray[np.float32]
 
 _GROW_CELLS = 128  # margin added on each side when a hit falls outside (6.4 m at 5 cm)
-
-
-def _local_max(grid: F32Array, radius: int) -> F32Array:
-    """out[i, j] = max of grid (≥ 0) over the (2·radius + 1)² window centred on (i, j): the
-    anchored `sliding_max` of the grid shifted by `radius` (zeros before it change no maximum)."""
-    h, w = grid.shape
-    shifted = np.pad(grid, ((radius, 0), (radius, 0)))
-    return sliding_max(shifted, 2 * radius + 1)[:h, :w]
 
 
 def residual_sq(field: npt.NDArray[np.floating], max_residual_sigmas: float) -> FloatArray:
@@ -82,36 +74,51 @@ class LikelihoodGrid:
         self.density: F32Array = np.zeros((0, 0), dtype=np.float32)  # Σ of the hits' Gaussians
         self.inserted = 0  # scans inserted
         self._costs: tuple[float, F32Array] | None = None  # (cap, `residual_costs`), a cache
+        # Cells (rows i0:i1, columns j0:j1) whose field changed since the cached cost table was
+        # brought up to date: an insert touches its scan's box, not the whole submap.
+        self._dirty: tuple[int, int, int, int] | None = None
+        self.costs_version = 0  # bumped whenever the cached cost table changes in place ...
+        self._cost_log: list[tuple[int, tuple[int, int, int, int]]] = []  # ... and where
         r = np.arange(-self.radius_cells, self.radius_cells + 1)
         self._di, self._dj = (a.ravel() for a in np.meshgrid(r, r, indexing="ij"))
 
     def __getstate__(self) -> dict[str, object]:
         state = dict(self.__dict__)
         state["_costs"] = None  # a cache, rebuilt on first use
+        state["_dirty"] = None
+        state["_cost_log"] = []
         return state
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        # The caches start empty, also in a checkpoint written before they existed.
+        self.__dict__.update(state)
+        self._costs, self._dirty, self._cost_log = None, None, []
+        version = state.get("costs_version", 0)
+        self.costs_version = version if isinstance(version, int) else 0
 
     # ------------------------------------------------------------------ building
     def insert(self, points_map_m: FloatArray) -> None:
         """Add every hit's Gaussian to the surface density and renormalise the field around
         them."""
         self.inserted += 1
-        self._costs = None
         if points_map_m.shape[0] == 0:
             return
+        shape = self.values.shape
         self._ensure(points_map_m)
+        if self.values.shape != shape:
+            self._costs = None  # grown: the cost table is rebuilt whole
         res = self.resolution_m
         v, u = self.cell_coords(points_map_m)
         ci, cj = np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)
-        ii = ci[:, None] + self._di[None, :]
-        jj = cj[:, None] + self._dj[None, :]
-        d2 = ((ii - v[:, None]) ** 2 + (jj - u[:, None]) ** 2) * (res * res)
-        val = np.exp(-0.5 * d2 / self.hit_sigma_m**2).ravel()
-        flat = (ii * self.values.shape[1] + jj).ravel()
-        order = np.argsort(flat, kind="stable")
-        cells = flat[order]
-        starts = np.flatnonzero(np.diff(cells, prepend=-1))
+        # Each hit's Gaussian at every cell of its stamp, summed per cell in hit order (the
+        # grouping is compiled; the exp and the sums stay numpy's, so the same bits).
+        arg = kernels.stamp_arguments(
+            v, u, ci, cj, self._di, self._dj, res * res, self.hit_sigma_m**2
+        )
+        val = np.exp(arg)
+        order, cells, starts = kernels.stamp_cells(ci, cj, self._di, self._dj, self.values.shape[1])
         added = np.add.reduceat(val[order], starts)
-        self.density.reshape(-1)[cells[starts]] += added.astype(np.float32)
+        self.density.reshape(-1)[cells] += added.astype(np.float32)
         rad = self.radius_cells
         self._normalise(
             int(ci.min()) - rad,
@@ -123,16 +130,20 @@ class LikelihoodGrid:
     def _normalise(self, i0: int, i1: int, j0: int, j1: int) -> None:
         """field = density / its maximum within the stamp radius, over rows i0:i1, columns
         j0:j1: the surface's profile across it, peaking at 1 on the mean of its hits."""
-        rad = self.radius_cells
         h, w = self.values.shape
-        a0, a1 = max(0, i0 - rad), min(h, i1 + rad)
-        b0, b1 = max(0, j0 - rad), min(w, j1 + rad)
-        block = self.density[a0:a1, b0:b1]
-        peak = _local_max(block, rad)
-        field = np.where(peak > 1e-3, block / np.maximum(peak, 1e-3), 0.0).astype(np.float32)
-        r0, r1 = max(0, i0) - a0, min(h, i1) - a0
-        c0, c1 = max(0, j0) - b0, min(w, j1) - b0
-        self.values[a0 + r0 : a0 + r1, b0 + c0 : b0 + c1] = field[r0:r1, c0:c1]
+        changed = (max(0, i0), min(h, i1), max(0, j0), min(w, j1))
+        kernels.normalise(self.density, self.values, self.radius_cells, *changed)
+        d = self._dirty
+        self._dirty = (
+            changed
+            if d is None
+            else (
+                min(d[0], changed[0]),
+                max(d[1], changed[1]),
+                min(d[2], changed[2]),
+                max(d[3], changed[3]),
+            )
+        )
 
     def _ensure(self, points_map_m: FloatArray) -> None:
         """Grow the grid so every point's stamp fits inside it."""
@@ -215,11 +226,43 @@ class LikelihoodGrid:
         correlative search gathers from it with clipped indices and no other test (it scores
         thousands of poses per scan)."""
         if self._costs is not None and self._costs[0] == max_residual_sigmas:
-            return self._costs[1]
+            costs = self._costs[1]
+            if self._dirty is not None:  # only what the inserts since touched
+                i0, i1, j0, j1 = self._dirty
+                block = np.ascontiguousarray(self.values[i0:i1, j0:j1])
+                costs[i0:i1, j0:j1] = residual_sq(block, max_residual_sigmas)
+                self._cap_border(costs, max_residual_sigmas)
+                self.costs_version += 1
+                self._cost_log = [*self._cost_log[-7:], (self.costs_version, self._dirty)]
+                self._dirty = None
+            return costs
         costs = residual_sq(self.values, max_residual_sigmas).astype(np.float32)
+        self._cap_border(costs, max_residual_sigmas)
+        self._costs = (max_residual_sigmas, costs)
+        self._dirty = None
+        self.costs_version += 1
+        self._cost_log = []
+        return costs
+
+    @staticmethod
+    def _cap_border(costs: F32Array, max_residual_sigmas: float) -> None:
         if costs.size:
             cap = off_surface_cost(max_residual_sigmas)
             costs[[0, -1], :] = cap
             costs[:, [0, -1]] = cap
-        self._costs = (max_residual_sigmas, costs)
-        return costs
+
+    def cost_changes_since(self, version: int) -> tuple[int, int, int, int] | None:
+        """The cells (rows i0:i1, columns j0:j1) of the cached cost table changed in place since
+        `costs_version` was `version` (an empty box if none), or None when that is not known
+        (the table was rebuilt, or too long ago)."""
+        if version == self.costs_version:
+            return (0, 0, 0, 0)
+        since = [box for v, box in self._cost_log if v > version]
+        if len(since) != self.costs_version - version:
+            return None
+        return (
+            min(b[0] for b in since),
+            max(b[1] for b in since),
+            min(b[2] for b in since),
+            max(b[3] for b in since),
+        )

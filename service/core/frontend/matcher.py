@@ -36,6 +36,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from service.core.frontend import kernels
 from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost, residual_sq
 from service.core.frontend.search import Lattice, lattice_search
 from service.core.types import FloatArray, Pose2D, rotate_points, wrap_angle
@@ -52,6 +53,10 @@ class MatchOptions:
     search_max_rad: float = math.radians(25.0)
     search_points: int = 200  # scan points scored by the search (evenly subsampled)
     refine_iterations: int = 12
+    # A Gauss-Newton step that raises the cost is halved at most this many times before the
+    # refine stops; each halving is one more evaluation of the scan. 2 is 10 % faster per scan
+    # but Intel's local rotation error grows (docs/matcher.md, "Speed"): 6 is kept.
+    refine_halvings: int = 6
     wall_huber: float = 2.0  # the wall prior's residual is linear beyond this many σ
     # The motion prior is a mixture: the prediction's Gaussian, or, at this cost (-2 ln of its
     # weight), anywhere in a broad window (stamps that lie, a stale scan, a kick). Searched
@@ -232,27 +237,20 @@ def _scan_terms(
     """Scan cost, its gradient and Gauss-Newton Hessian at `pose` (halved), and the mean
     field value."""
     n = pts.shape[0]
-    q = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
-    value, grad = grid.interpolate(q)
-    r_sq = residual_sq(value, opts.max_residual_sigmas)
-    r = np.sqrt(r_sq)
-    inlier = (r < opts.max_residual_sigmas) & (value > 0.0)
-    # ∂(r²/2)/∂q = -∇M / M, exact; the Gauss-Newton Jacobian ∂r/∂q = -∇M / (M r) with r held
-    # off 0, where interpolation leaves ∇M and r not quite vanishing together.
-    inv_m = np.where(inlier, 1.0 / np.maximum(value, 1e-9), 0.0)
-    half_grad_q = -grad * inv_m[:, None]
-    jac_q = half_grad_q / np.maximum(r, 0.1)[:, None]
     c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-    dqx_dt = -s * pts[:, 0] - c * pts[:, 1]
-    dqy_dt = c * pts[:, 0] - s * pts[:, 1]
-
-    def to_pose(d_dq: FloatArray) -> FloatArray:
-        return np.column_stack((d_dq[:, 0], d_dq[:, 1], d_dq[:, 0] * dqx_dt + d_dq[:, 1] * dqy_dt))
-
-    j = to_pose(jac_q)
+    # The field (bicubic) at the points placed at `pose` (`grid.interpolate`, compiled).
+    ox, oy = grid.origin_m
+    value, grad = kernels.interpolate(
+        grid.values, ox, oy, grid.resolution_m, pts, c, s, pose.x_m, pose.y_m
+    )
+    r_sq = residual_sq(value, opts.max_residual_sigmas)
+    # ∂(r²/2)/∂q = -∇M / M, exact; the Gauss-Newton Jacobian ∂r/∂q = -∇M / (M r) with r held
+    # off 0, where interpolation leaves ∇M and r not quite vanishing together; both by the
+    # chain rule in (x, y, θ). The sums stay numpy's (pairwise, BLAS): the same bits.
+    half_grad, j = kernels.scan_jacobians(value, grad, r_sq, pts, c, s, opts.max_residual_sigmas)
     scale = opts.scan_weight / max(n, 1)
     cost = scale * float(r_sq.sum())
-    g = scale * to_pose(half_grad_q).sum(axis=0)
+    g = scale * half_grad.sum(axis=0)
     h = scale * (j.T @ j)
     return cost, g, h, float(value.mean()) if n else 0.0
 
@@ -280,7 +278,7 @@ def refine(
     for _ in range(opts.refine_iterations):
         step = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
         accepted = False
-        for _half in range(6):  # a step that raises the cost is halved
+        for _half in range(opts.refine_halvings):  # a step that raises the cost is halved
             cand = Pose2D(
                 float(pose.x_m + step[0]),
                 float(pose.y_m + step[1]),

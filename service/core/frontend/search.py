@@ -32,10 +32,13 @@ bound is below the best pose found so far:
   slack), so ties survive, and ties are broken as the brute force breaks them: lowest rotation
   index, then row-major translation.
 
-The pyramid is per submap and cost table: it is built on first use after the submap changed and
-cached beside the grid (held weakly, keyed to the identity of the grid's cached cost table, which
-an insert replaces). It is built over the bounding box of the cells that do not cost the cap
-value, padded by the largest block: outside that box every window holds only cells at the cap.
+The pyramid is per submap: built on a submap's first search and cached beside the grid (held
+weakly), then updated in place over the box each insert changed
+(`LikelihoodGrid.cost_changes_since`; minima are exact in any order: a rebuild's values). It
+is built over the bounding box of the cells that do not cost the cap value, padded by the
+largest block and a margin for later inserts: outside that box every window holds only cells
+at the cap. A lattice small enough (40 Hz) is scored whole instead. The inner loops are
+compiled (`kernels`).
 """
 
 from __future__ import annotations
@@ -43,21 +46,24 @@ from __future__ import annotations
 import math
 import weakref
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
+from service.core.frontend import kernels
 from service.core.frontend.likelihood import F32Array, LikelihoodGrid
 from service.core.types import FloatArray
 
 IntArray = npt.NDArray[np.int64]
-Interval = tuple[npt.NDArray[np.floating[Any]], npt.NDArray[np.floating[Any]]]  # (lo, hi)
 
 # The largest pyramid level: windows of 2^6 = 64 cells (3.2 m at 5 cm). A point whose block
 # spans more is bounded by the table's global minimum.
 MAX_LEVEL = 6
 # Single poses scored before each level to tighten the bound to beat.
+# A lattice of at most this many poses is scored whole (measured: below it the tree's numpy
+# overhead per level costs more than the poses it prunes), in batches of _DENSE_BATCH.
+_DENSE_MAX_POSES = 2048
+_DENSE_BATCH = 2048
 _PROBES = 4
 # A block is pruned when its bound exceeds the best cost by more than this (relative): the
 # bound and the exact cost sum the same float32 values in different orders.
@@ -90,10 +96,13 @@ class CostPyramid:
         return out
 
 
-def build_pyramid(costs: F32Array, off_surface: float, max_level: int = MAX_LEVEL) -> CostPyramid:
+def build_pyramid(
+    costs: F32Array, off_surface: float, max_level: int = MAX_LEVEL, margin: int = 0
+) -> CostPyramid:
     """The min-pyramid of a cost table whose border cells (and everything off it) cost
-    `off_surface`."""
-    pad = 1 << max_level
+    `off_surface`, over the cells that do not cost it padded by the largest window and
+    `margin` more (room for later inserts: a crop of more cap cells looks up the same)."""
+    pad = (1 << max_level) + margin
     differs = costs != np.float32(off_surface)
     rows_any, cols_any = np.flatnonzero(differs.any(axis=1)), np.flatnonzero(differs.any(axis=0))
     if rows_any.size:
@@ -106,7 +115,7 @@ def build_pyramid(costs: F32Array, off_surface: float, max_level: int = MAX_LEVE
     levels = flat[:-1].reshape(max_level + 1, height, width)
     levels[0].fill(np.float32(off_surface))
     levels[0, pad : pad + r1 - r0, pad : pad + c1 - c0] = costs[r0:r1, c0:c1]
-    for m in range(max_level):
+    for m in range(max_level):  # whole levels: numpy's vectorised minima beat a loop here
         s = 1 << m
         src, dst = levels[m], levels[m + 1]
         # Rows then columns: the window doubles in each. Cells past the crop's end cost the cap.
@@ -119,20 +128,64 @@ def build_pyramid(costs: F32Array, off_surface: float, max_level: int = MAX_LEVE
     return CostPyramid(flat, r0 - pad, c0 - pad, height, width, max_level)
 
 
-# Per grid: (the cost table the pyramid was built from, the pyramid). Weak keys: a submap that
-# is dropped takes its pyramid with it.
-_PYRAMIDS: weakref.WeakKeyDictionary[LikelihoodGrid, tuple[F32Array, CostPyramid]] = (
+def update_pyramid(
+    pyramid: CostPyramid, costs: F32Array, off_surface: float, box: tuple[int, int, int, int]
+) -> bool:
+    """Bring `pyramid` up to date in place after `costs` changed in rows i0:i1, columns j0:j1
+    (`box`); False (nothing done) when a cell that does not cost the cap now lies where the
+    crop cannot hold it: the pyramid must be rebuilt."""
+    i0, i1, j0, j1 = box
+    if i0 >= i1 or j0 >= j1:
+        return True
+    pad = 1 << pyramid.max_level
+    differs = costs[i0:i1, j0:j1] != np.float32(off_surface)
+    rows_any, cols_any = np.flatnonzero(differs.any(axis=1)), np.flatnonzero(differs.any(axis=0))
+    if rows_any.size and (
+        i0 + int(rows_any[0]) < pyramid.row0 + pad
+        or i0 + int(rows_any[-1]) >= pyramid.row0 + pyramid.height - pad
+        or j0 + int(cols_any[0]) < pyramid.col0 + pad
+        or j0 + int(cols_any[-1]) >= pyramid.col0 + pyramid.width - pad
+    ):
+        return False
+    # Cells of the box off the crop cost the cap, before and after: only the overlap changes.
+    r0, r1 = max(i0, pyramid.row0), min(i1, pyramid.row0 + pyramid.height)
+    c0, c1 = max(j0, pyramid.col0), min(j1, pyramid.col0 + pyramid.width)
+    if r0 >= r1 or c0 >= c1:
+        return True
+    flat = pyramid.flat
+    levels = flat[:-1].reshape(pyramid.max_level + 1, pyramid.height, pyramid.width)
+    a0, a1, b0, b1 = r0 - pyramid.row0, r1 - pyramid.row0, c0 - pyramid.col0, c1 - pyramid.col0
+    levels[0, a0:a1, b0:b1] = costs[r0:r1, c0:c1]
+    kernels.pyramid_update(levels, off_surface, a0, a1, b0, b1)
+    flat[-1] = min(float(levels[0].min()), off_surface)
+    return True
+
+
+# Cells of cap added around a rebuilt pyramid's crop, so that the next inserts (a robot moving
+# into what its submap has not seen) update it in place rather than rebuild it.
+_CROP_MARGIN = 96
+
+# Per grid: (the cost table the pyramid was built from, its version, the pyramid). Weak keys: a
+# submap that is dropped takes its pyramid with it.
+_PYRAMIDS: weakref.WeakKeyDictionary[LikelihoodGrid, tuple[F32Array, int, CostPyramid]] = (
     weakref.WeakKeyDictionary()
 )
 
 
 def pyramid_of(grid: LikelihoodGrid, costs: F32Array, off_surface: float) -> CostPyramid:
-    """The grid's pyramid of `costs` (its current `residual_costs`), built on first use."""
+    """The grid's pyramid of `costs` (its current `residual_costs`): built on first use, then
+    updated over the cells each insert changed (`LikelihoodGrid.cost_changes_since`)."""
     cached = _PYRAMIDS.get(grid)
+    version = grid.costs_version
     if cached is not None and cached[0] is costs:
-        return cached[1]
-    pyramid = build_pyramid(costs, off_surface)
-    _PYRAMIDS[grid] = (costs, pyramid)
+        if cached[1] == version:
+            return cached[2]
+        box = grid.cost_changes_since(cached[1])
+        if box is not None and update_pyramid(cached[2], costs, off_surface, box):
+            _PYRAMIDS[grid] = (costs, version, cached[2])
+            return cached[2]
+    pyramid = build_pyramid(costs, off_surface, margin=_CROP_MARGIN)
+    _PYRAMIDS[grid] = (costs, version, pyramid)
     return pyramid
 
 
@@ -173,7 +226,7 @@ class _Problem:
     ) -> None:
         self.pyr = pyramid
         self.lat = lat
-        self.px, self.py = pts[:, 0], pts[:, 1]
+        self.px, self.py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
         self.range_m = np.hypot(self.px, self.py)
         self.res = grid.resolution_m
         self.origin = grid.origin_m
@@ -181,23 +234,59 @@ class _Problem:
         self.n_rot = lat.thetas_rad.shape[0]
         self.n_rows, self.n_cols = 2 * lat.half_rows + 1, 2 * lat.half_cols + 1
         self.has_wall = lat.wall_heading_rad is not None and math.isfinite(lat.wall_sigma_rad)
+        # Per rotation, once: its offset from the prediction, and from the walls' heading (σ)
+        # with the wall cost there (elementwise, so the same bits as computed pose by pose).
+        self.dt = _wrap(lat.thetas_rad - lat.predicted_theta_rad)
+        self.wall_z = np.zeros(0)
+        self.wall_cost = np.zeros(0)
+        if self.has_wall:
+            assert lat.wall_heading_rad is not None
+            self.wall_z = _wrap(lat.thetas_rad - lat.wall_heading_rad) / lat.wall_sigma_rad
+            self.wall_cost = _huber(self.wall_z, lat.wall_huber)
+        self.pts = np.ascontiguousarray(pts)
+        self.pyramid_shape = np.array(
+            [pyramid.row0, pyramid.col0, pyramid.height, pyramid.width, pyramid.max_level]
+        )
+        self.frame = np.array(
+            [
+                lat.predicted_xy_m[0],
+                lat.predicted_xy_m[1],
+                self.origin[0],
+                self.origin[1],
+                self.res,
+                lat.scan_weight,
+                lat.wall_huber,
+            ]
+        )
 
     # ------------------------------------------------------------------ single poses
     def exact(self, k: IntArray, a: IntArray, b: IntArray) -> FloatArray:
         """The cost of poses (rotation k, row offset a - ny, column offset b - nx), with the
         brute force's operations in the brute force's order: the same bits."""
-        lat, res = self.lat, self.res
-        c, s = self.cos[k][:, None], self.sin[k][:, None]
-        mx = c * self.px[None, :] - s * self.py[None, :] + lat.predicted_xy_m[0]
-        my = s * self.px[None, :] + c * self.py[None, :] + lat.predicted_xy_m[1]
+        lat, res, pyr = self.lat, self.res, self.pyr
         di, dj = a - lat.half_rows, b - lat.half_cols
-        rows = np.rint((my - self.origin[1]) / res - 0.5).astype(np.int64) + di[:, None]
-        cols = np.rint((mx - self.origin[0]) / res - 0.5).astype(np.int64) + dj[:, None]
-        level0 = np.zeros_like(rows)
-        scan = lat.scan_weight * self.pyr.lookup(level0, rows, cols).mean(axis=1, dtype=np.float64)
+        looked_up = kernels.lattice_gather(
+            pyr.flat,
+            pyr.row0,
+            pyr.col0,
+            pyr.height,
+            pyr.width,
+            self.px,
+            self.py,
+            self.cos[k],
+            self.sin[k],
+            di,
+            dj,
+            lat.predicted_xy_m[0],
+            lat.predicted_xy_m[1],
+            self.origin[0],
+            self.origin[1],
+            res,
+        )
+        scan = lat.scan_weight * looked_up.mean(axis=1, dtype=np.float64)
         info = lat.info_pred
         dx, dy = dj * res, di * res
-        dt = _wrap(lat.thetas_rad[k] - lat.predicted_theta_rad)
+        dt = self.dt[k]
         prior = (
             info[0, 0] * dx * dx
             + info[1, 1] * dy * dy
@@ -208,89 +297,36 @@ class _Problem:
         )
         total: FloatArray = scan + prior
         if self.has_wall:
-            assert lat.wall_heading_rad is not None
-            z = _wrap(lat.thetas_rad[k] - lat.wall_heading_rad) / lat.wall_sigma_rad
-            total = total + _huber(z, lat.wall_huber)
+            total = total + self.wall_cost[k]
         return total
 
     # ------------------------------------------------------------------ blocks
     def bound(self, k0: IntArray, a0: IntArray, b0: IntArray, ka: int, d: int) -> FloatArray:
         """A lower bound of the cost over each block: rotations k0 .. k0+2^ka-1, row offsets
-        a0 .. a0+2^d-1, column offsets b0 .. b0+2^d-1 (each clipped to the lattice)."""
-        lat, res = self.lat, self.res
+        a0 .. a0+2^d-1, column offsets b0 .. b0+2^d-1 (each clipped to the lattice)
+        (`kernels.block_bounds`: the scan term, the motion prior's, the walls')."""
+        lat = self.lat
         k1 = np.minimum(k0 + (1 << ka), self.n_rot) - 1
         a1 = np.minimum(a0 + (1 << d), self.n_rows) - 1
         b1 = np.minimum(b0 + (1 << d), self.n_cols) - 1
-        t0, t1 = lat.thetas_rad[k0], lat.thetas_rad[k1]
-        mid, half = 0.5 * (t0 + t1), 0.5 * (t1 - t0)
-        c, s = np.cos(mid)[:, None], np.sin(mid)[:, None]
-        u = (c * self.px - s * self.py + lat.predicted_xy_m[0] - self.origin[0]) / res - 0.5
-        v = (s * self.px + c * self.py + lat.predicted_xy_m[1] - self.origin[1]) / res - 0.5
-        # Where a point can be over the block's rotations: within |p|·δ of the middle's place
-        # (plus slack for the brute force's own rounding of the same positions).
-        reach = self.range_m[None, :] * (half / res)[:, None] + 1e-6
-        lo_c = np.rint(u - reach).astype(np.int64)
-        lo_r = np.rint(v - reach).astype(np.int64)
-        span_c = np.rint(u + reach).astype(np.int64) - lo_c + (b1 - b0 + 1)[:, None]
-        span_r = np.rint(v + reach).astype(np.int64) - lo_r + (a1 - a0 + 1)[:, None]
-        side = np.maximum(span_r, span_c)
-        level = np.frexp(side - 1)[1]  # ceil(log2(side)): the smallest square that holds it
-        rows = lo_r + (a0 - lat.half_rows)[:, None]
-        cols = lo_c + (b0 - lat.half_cols)[:, None]
-        scan = lat.scan_weight * self.pyr.lookup(level, rows, cols).mean(axis=1, dtype=np.float64)
-        bound: FloatArray = (
-            scan + self._prior_bound((k0, k1), (a0, a1), (b0, b1)) + self._wall_bound(t0, t1)
+        bound: FloatArray = kernels.block_bounds(
+            self.pyr.flat,
+            self.pyramid_shape,
+            self.pts,
+            self.range_m,
+            lat.thetas_rad,
+            self.dt,
+            self.wall_z,
+            k0,
+            k1,
+            a0 - lat.half_rows,
+            b0 - lat.half_cols,
+            a1 - a0 + 1,
+            b1 - b0 + 1,
+            self.frame,
+            lat.info_pred,
         )
         return bound
-
-    def _prior_bound(
-        self,
-        k: tuple[IntArray, IntArray],
-        a: tuple[IntArray, IntArray],
-        b: tuple[IntArray, IntArray],
-    ) -> FloatArray:
-        """Lower bound of (dx, dy, dθ) Λ (dx, dy, dθ)ᵀ over each block's box, term by term."""
-        lat, res, info = self.lat, self.res, self.lat.info_pred
-        x = ((b[0] - lat.half_cols) * res, (b[1] - lat.half_cols) * res)
-        y = ((a[0] - lat.half_rows) * res, (a[1] - lat.half_rows) * res)
-        t = (
-            _wrap(lat.thetas_rad[k[0]] - lat.predicted_theta_rad),
-            _wrap(lat.thetas_rad[k[1]] - lat.predicted_theta_rad),
-        )
-
-        def square(lo_hi: Interval) -> FloatArray:
-            lo, hi = lo_hi
-            out: FloatArray = np.where((lo <= 0.0) & (hi >= 0.0), 0.0, np.minimum(lo * lo, hi * hi))
-            return out
-
-        def product(coef: float, p: Interval, q: Interval) -> FloatArray:
-            corners = [coef * pi * qj for pi in p for qj in q]
-            out: FloatArray = np.minimum(
-                np.minimum(corners[0], corners[1]), np.minimum(*corners[2:])
-            )
-            return out
-
-        total = (
-            info[0, 0] * square(x)
-            + info[1, 1] * square(y)
-            + info[2, 2] * square(t)
-            + product(2.0 * info[0, 1], x, y)
-            + product(2.0 * info[0, 2], x, t)
-            + product(2.0 * info[1, 2], y, t)
-        )
-        out: FloatArray = np.maximum(total, 0.0)  # Λ is positive semi-definite
-        return out
-
-    def _wall_bound(self, t0: FloatArray, t1: FloatArray) -> FloatArray | float:
-        """The wall cost at each block's angle nearest the walls' heading (0 if it spans it)."""
-        lat = self.lat
-        if not self.has_wall:
-            return 0.0
-        assert lat.wall_heading_rad is not None
-        z0 = _wrap(t0 - lat.wall_heading_rad) / lat.wall_sigma_rad
-        z1 = _wrap(t1 - lat.wall_heading_rad) / lat.wall_sigma_rad
-        nearest = np.where(z0 * z1 <= 0.0, 0.0, np.minimum(np.abs(z0), np.abs(z1)))
-        return _huber(nearest, lat.wall_huber)
 
 
 def lattice_search(
@@ -319,6 +355,21 @@ def lattice_search(
         i = int(np.lexsort((b, a, k, cost))[0])
         key = (float(cost[i]), int(k[i]), int(a[i]), int(b[i]))
         best_key = min(best_key, key)
+
+    if n_rot * n_rows * n_cols <= _DENSE_MAX_POSES:
+        # A small lattice (40 Hz: a few cells, a few dozen rotations): every pose scored in
+        # one batch costs less than the tree's levels of small batches, and is the brute force.
+        grid_k, grid_a, grid_b = (
+            g.ravel().astype(np.int64)
+            for g in np.meshgrid(
+                np.arange(n_rot), np.arange(n_rows), np.arange(n_cols), indexing="ij"
+            )
+        )
+        for lo in range(0, grid_k.shape[0], _DENSE_BATCH):
+            hi = lo + _DENSE_BATCH
+            consider(grid_k[lo:hi], grid_a[lo:hi], grid_b[lo:hi])
+        _, k, a, b = best_key
+        return k, a - lat.half_rows, b - lat.half_cols, scored
 
     # The pose at the prediction: a first bound to beat.
     k_pred = int(np.argmin(np.abs(_wrap(lat.thetas_rad - lat.predicted_theta_rad))))

@@ -13,7 +13,8 @@ from scenes import PARAMS, grid_of, matched_points, scan_of, world_of
 from sensor_agent.sim.world import World
 from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
 from service.core.frontend.matcher import MatchOptions, Priors, _brute_force_search, search
-from service.core.frontend.search import build_pyramid, pyramid_of
+from service.core.frontend.scan_matcher import surface_in_map
+from service.core.frontend.search import MAX_LEVEL, CostPyramid, build_pyramid, pyramid_of
 from service.core.types import Pose2D
 
 pytestmark = pytest.mark.timeout(120)
@@ -145,5 +146,36 @@ def test_the_pyramid_is_cached_until_the_submap_changes() -> None:
     costs = grid.residual_costs(3.0)
     first = pyramid_of(grid, costs, CAP)
     assert pyramid_of(grid, grid.residual_costs(3.0), CAP) is first
+    version = grid.costs_version
     grid.insert(np.array([[5.0, 5.0], [5.1, 5.0]]))
-    assert pyramid_of(grid, grid.residual_costs(3.0), CAP) is not first
+    assert grid.residual_costs(3.0) is costs  # updated in place, over the inserted box
+    assert grid.costs_version > version
+
+
+def _same_lookups(a: CostPyramid, b: CostPyramid, rng: np.random.Generator, box: tuple) -> None:
+    r0, r1, c0, c1 = box
+    rows = rng.integers(r0 - 80, r1 + 80, size=20000)
+    cols = rng.integers(c0 - 80, c1 + 80, size=20000)
+    levels = rng.integers(0, MAX_LEVEL + 2, size=20000)
+    assert np.array_equal(a.lookup(levels, rows, cols), b.lookup(levels, rows, cols))
+
+
+def test_inserts_update_the_cost_table_and_pyramid_as_rebuilding_them_would() -> None:
+    """Scan after scan into one submap, moving out of what it held (in place where the crop
+    holds the change, rebuilt where it does not): the cost table is the one computed whole, bit
+    for bit, and the pyramid looks up what a pyramid built afresh looks up."""
+    rng = np.random.default_rng(11)
+    world = _world(rng)
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
+    pose = Pose2D(2.0, 2.0, 0.3)
+    for step in range(12):
+        scan = scan_of(world, pose, rng)
+        grid.insert(surface_in_map(scan.points_xy_m(), pose, PARAMS))
+        costs = grid.residual_costs(3.0)
+        fresh = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
+        fresh.values = grid.values.copy()
+        assert np.array_equal(costs, fresh.residual_costs(3.0))
+        pyr = pyramid_of(grid, costs, CAP)
+        h, w = costs.shape
+        _same_lookups(pyr, build_pyramid(costs, CAP), rng, (0, h, 0, w))
+        pose = Pose2D(pose.x_m + 0.7, pose.y_m + 0.4 * (step % 3 - 1), pose.theta_rad + 0.1)

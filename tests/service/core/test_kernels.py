@@ -1,0 +1,127 @@
+"""The compiled inner loops (`service.core.frontend.kernels`) compute what the numpy code they
+stand for computes, bit for bit: the field's bicubic interpolation and the search's lookups."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scenes import PARAMS, grid_of, matched_points, scan_of, world_of
+
+from service.core.frontend import kernels
+from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
+from service.core.frontend.scan_matcher import surface_in_map
+from service.core.frontend.search import build_pyramid
+from service.core.maps.submaps import sliding_max
+from service.core.types import Pose2D, rotate_points
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _room() -> tuple[LikelihoodGrid, np.ndarray, np.random.Generator]:
+    rng = np.random.default_rng(4)
+    segs = [[0, 0, 10, 0], [10, 0, 10, 7], [10, 7, 0, 7], [0, 7, 0, 0], [4, 2, 5, 2], [5, 2, 5, 3]]
+    world = world_of(segs, 10.0, 7.0)
+    poses = [Pose2D(3.0, 3.5, 0.1), Pose2D(3.3, 3.6, 0.15)]
+    grid = grid_of([(scan_of(world, p, rng), p) for p in poses])
+    pts = matched_points(scan_of(world, Pose2D(3.1, 3.4, 0.12), rng))
+    return grid, pts, rng
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_interpolate_is_the_grids_own_bit_for_bit(seed: int) -> None:
+    grid, pts, _ = _room()
+    rng = np.random.default_rng(seed)
+    # Poses on the submap and far off it (points off the grid read 0, no gradient).
+    for _ in range(20):
+        pose = Pose2D(rng.uniform(-20, 30), rng.uniform(-20, 30), rng.uniform(-math.pi, math.pi))
+        if rng.integers(0, 2):
+            pose = Pose2D(rng.normal(3.1, 0.2), rng.normal(3.4, 0.2), rng.normal(0.12, 0.05))
+        q = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+        want_v, want_g = grid.interpolate(q)
+        c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
+        ox, oy = grid.origin_m
+        got_v, got_g = kernels.interpolate(
+            grid.values,
+            ox,
+            oy,
+            grid.resolution_m,
+            pts,
+            c,
+            s,
+            pose.x_m,
+            pose.y_m,
+        )
+        assert np.array_equal(got_v, want_v)
+        assert np.array_equal(got_g, want_g)
+
+
+def test_lattice_gather_is_numpys_lookup_bit_for_bit() -> None:
+    grid, pts, rng = _room()
+    cap = off_surface_cost(3.0)
+    pyr = build_pyramid(grid.residual_costs(3.0), cap)
+    thetas = rng.uniform(-math.pi, math.pi, 30)
+    cos_k, sin_k = np.cos(thetas), np.sin(thetas)
+    di, dj = rng.integers(-40, 40, 30), rng.integers(-40, 40, 30)
+    px, py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
+    tx, ty = 3.1, 3.4
+    ox, oy = grid.origin_m
+    res = grid.resolution_m
+    got = kernels.lattice_gather(
+        pyr.flat, pyr.row0, pyr.col0, pyr.height, pyr.width, px, py, cos_k, sin_k, di, dj,
+        tx, ty, ox, oy, res,
+    )  # fmt: skip
+    mx = cos_k[:, None] * px - sin_k[:, None] * py + tx
+    my = sin_k[:, None] * px + cos_k[:, None] * py + ty
+    rows = np.rint((my - oy) / res - 0.5).astype(np.int64) + di[:, None]
+    cols = np.rint((mx - ox) / res - 0.5).astype(np.int64) + dj[:, None]
+    want = pyr.lookup(np.zeros_like(rows), rows, cols)
+    assert np.array_equal(got, want)
+
+
+def _numpy_insert(grid: LikelihoodGrid, points_map_m: np.ndarray) -> None:
+    """`LikelihoodGrid.insert` as numpy alone computes it (the reference of the kernels)."""
+    grid._ensure(points_map_m)
+    res, rad = grid.resolution_m, grid.radius_cells
+    v, u = grid.cell_coords(points_map_m)
+    ci, cj = np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)
+    ii = ci[:, None] + grid._di[None, :]
+    jj = cj[:, None] + grid._dj[None, :]
+    d2 = ((ii - v[:, None]) ** 2 + (jj - u[:, None]) ** 2) * (res * res)
+    val = np.exp(-0.5 * d2 / grid.hit_sigma_m**2).ravel()
+    flat = (ii * grid.values.shape[1] + jj).ravel()
+    order = np.argsort(flat, kind="stable")
+    cells = flat[order]
+    starts = np.flatnonzero(np.diff(cells, prepend=-1))
+    grid.density.reshape(-1)[cells[starts]] += np.add.reduceat(val[order], starts).astype(
+        np.float32
+    )
+    h, w = grid.values.shape
+    i0, i1 = int(ci.min()) - rad, int(ci.max()) + rad + 1
+    j0, j1 = int(cj.min()) - rad, int(cj.max()) + rad + 1
+    a0, a1, b0, b1 = max(0, i0 - rad), min(h, i1 + rad), max(0, j0 - rad), min(w, j1 + rad)
+    block = grid.density[a0:a1, b0:b1]
+    padded = np.pad(block, ((rad, 0), (rad, 0)))
+    peak = sliding_max(padded, 2 * rad + 1)[: block.shape[0], : block.shape[1]]
+    field = np.where(peak > 1e-3, block / np.maximum(peak, 1e-3), 0.0).astype(np.float32)
+    r0, r1, c0, c1 = max(0, i0) - a0, min(h, i1) - a0, max(0, j0) - b0, min(w, j1) - b0
+    grid.values[a0 + r0 : a0 + r1, b0 + c0 : b0 + c1] = field[r0:r1, c0:c1]
+
+
+def test_insert_is_numpys_bit_for_bit() -> None:
+    """Scans moving through a room, inserted by the kernels and by numpy alone: the same
+    density and field, bit for bit."""
+    rng = np.random.default_rng(8)
+    segs = [[0, 0, 10, 0], [10, 0, 10, 7], [10, 7, 0, 7], [0, 7, 0, 0], [4, 2, 5, 2], [5, 2, 5, 3]]
+    world = world_of(segs, 10.0, 7.0)
+    ours = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
+    ref = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
+    for step in range(8):
+        pose = Pose2D(1.5 + 0.9 * step, 3.5 + 0.3 * math.sin(step), 0.2 * step)
+        pts = surface_in_map(scan_of(world, pose, rng).points_xy_m(), pose, PARAMS)
+        ours.insert(pts)
+        _numpy_insert(ref, pts)
+        assert ours.origin_m == ref.origin_m
+        assert np.array_equal(ours.density, ref.density)
+        assert np.array_equal(ours.values, ref.values)
