@@ -403,3 +403,60 @@ def normalise(  # noqa: PLR0917 - numba takes no keyword-only arguments
                 for jj in range(max(0, j - rad), min(w, j + rad + 1)):
                     peak = max(peak, density[ii, jj])
             values[i, j] = d / max(peak, floor) if peak > floor else np.float32(0.0)
+
+
+@_jit
+def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    density: F32Array,
+    values: F32Array,
+    hits: F32Array,
+    misses: F32Array,
+    stamped: npt.NDArray[np.int32],
+    this_insert: int,
+    rad: int,
+    origin_row: float,
+    origin_col: float,
+    end_rows: FloatArray,
+    end_cols: FloatArray,
+    margin_cells: float,
+) -> tuple[int, int, int, int]:
+    """Free space seen by a keyframe's rays (continuous cell coordinates, integers at centres):
+    every cell a ray crosses up to `margin_cells` before its return counts one miss (once per
+    ray), and a crossed cell on a surface gets its field again, the normalised density times
+    hits / (hits + misses). A cell this keyframe's own hits stamped (`stamped` ==
+    `this_insert`) is a surface seen now, not free: a ray grazing a wall does not erode it.
+    Returns the box (rows i0:i1, columns j0:j1) of the field changed."""
+    h, w = density.shape
+    floor = np.float32(1e-3)
+    bi0, bi1, bj0, bj1 = h, 0, w, 0
+    for k in range(end_rows.shape[0]):
+        dr = end_rows[k] - origin_row
+        dc = end_cols[k] - origin_col
+        length = math.sqrt(dr * dr + dc * dc)
+        free = length - margin_cells
+        if free <= 0.0:
+            continue
+        steps = int(free * 2.0) + 1  # half a cell apart: no cell crossed is skipped
+        prev_i, prev_j = -1, -1
+        for s in range(steps):
+            t = 0.5 * s / length
+            i = math.floor(origin_row + dr * t + 0.5)
+            j = math.floor(origin_col + dc * t + 0.5)
+            if (i == prev_i and j == prev_j) or i < 0 or j < 0 or i >= h or j >= w:
+                continue
+            prev_i, prev_j = i, j
+            if stamped[i, j] == this_insert:
+                continue
+            misses[i, j] += np.float32(1.0)
+            d = density[i, j]
+            if not d > 0.0:
+                continue
+            peak = d
+            for ii in range(max(0, i - rad), min(h, i + rad + 1)):
+                for jj in range(max(0, j - rad), min(w, j + rad + 1)):
+                    peak = max(peak, density[ii, jj])
+            surface = d / max(peak, floor) if peak > floor else np.float32(0.0)
+            values[i, j] = surface * hits[i, j] / (hits[i, j] + misses[i, j])
+            bi0, bi1 = min(bi0, i), max(bi1, i + 1)
+            bj0, bj1 = min(bj0, j), max(bj1, j + 1)
+    return bi0, bi1, bj0, bj1

@@ -10,9 +10,16 @@ correlative search.
 
 A point far from every surface costs the same whether its space was seen empty or never seen:
 the residual's cap, an outlier. Scoring unseen space any better would pull a scan out of the
-submap, into what it has not mapped, wherever that is cheaper than fitting its walls. No
-ray-cast misses lower the field: a submap lives for a bounded stretch of
-travel (`MatcherParams.scans_per_submap`), which bounds how long a person's trail stays in it.
+submap, into what it has not mapped, wherever that is cheaper than fitting its walls.
+
+Free space is carved (with `carve_margin_m`): each keyframe's rays count a miss in every cell
+they cross, up to that margin short of their return, and the field is the normalised density
+× hits / (hits + misses), per cell. A person walking ahead leaves hits where each keyframe saw
+them; the next keyframes look through those spots, so the trail fades instead of pulling the
+next scan back along it (with only the walls of a plain corridor, a trail ending at the last
+place the person was seen makes lagging behind cheaper than keeping up). A cell this keyframe's
+own surfaces stamp is seen now, not free: rays grazing a wall do not erode it.
+
 The grid grows in whole blocks as the robot moves.
 """
 
@@ -65,7 +72,9 @@ class LikelihoodGrid:
     """A growing likelihood field in the map frame. Row = y, column = x; cell (i, j)'s centre
     is at origin + ((j + 0.5)·res, (i + 0.5)·res)."""
 
-    def __init__(self, resolution_m: float, hit_sigma_m: float) -> None:
+    def __init__(
+        self, resolution_m: float, hit_sigma_m: float, carve_margin_m: float | None = None
+    ) -> None:
         self.resolution_m = resolution_m
         self.hit_sigma_m = hit_sigma_m
         self.radius_cells = max(1, math.ceil(3.0 * hit_sigma_m / resolution_m))
@@ -73,6 +82,14 @@ class LikelihoodGrid:
         self.values: F32Array = np.zeros((0, 0), dtype=np.float32)
         self.density: F32Array = np.zeros((0, 0), dtype=np.float32)  # Σ of the hits' Gaussians
         self.inserted = 0  # scans inserted
+        # With free space carved (`carve_margin_m` not None: rays carve up to that much short
+        # of their return): per cell, the keyframes that hit within a stamp of it and the rays
+        # that crossed it; the field is the normalised density × hits / (hits + misses).
+        self.carve_margin_m = carve_margin_m
+        self.carve_free_space = carve_margin_m is not None
+        self.hits: F32Array = np.zeros((0, 0), dtype=np.float32)
+        self.misses: F32Array = np.zeros((0, 0), dtype=np.float32)
+        self.stamped = np.zeros((0, 0), dtype=np.int32)  # the insert that last stamped a cell
         self._costs: tuple[float, F32Array] | None = None  # (cap, `residual_costs`), a cache
         # Cells (rows i0:i1, columns j0:j1) whose field changed since the cached cost table was
         # brought up to date: an insert touches its scan's box, not the whole submap.
@@ -93,18 +110,33 @@ class LikelihoodGrid:
         # The caches start empty, also in a checkpoint written before they existed.
         self.__dict__.update(state)
         self._costs, self._dirty, self._cost_log = None, None, []
+        if "carve_free_space" not in state:  # written before free space was carved
+            self.carve_free_space, self.carve_margin_m = False, None
+            self.hits = np.zeros((0, 0), dtype=np.float32)
+            self.misses = np.zeros((0, 0), dtype=np.float32)
+            self.stamped = np.zeros((0, 0), dtype=np.int32)
         version = state.get("costs_version", 0)
         self.costs_version = version if isinstance(version, int) else 0
 
     # ------------------------------------------------------------------ building
-    def insert(self, points_map_m: FloatArray) -> None:
+    def insert(
+        self,
+        points_map_m: FloatArray,
+        origin_m: tuple[float, float] | None = None,
+        ray_ends_m: FloatArray | None = None,
+    ) -> None:
         """Add every hit's Gaussian to the surface density and renormalise the field around
-        them."""
+        them; with free space carved, the rays from `origin_m` to `ray_ends_m` (the scan's
+        returns) count misses in the cells they cross."""
         self.inserted += 1
         if points_map_m.shape[0] == 0:
             return
         shape = self.values.shape
-        self._ensure(points_map_m)
+        carving = self.carve_free_space and origin_m is not None and ray_ends_m is not None
+        if carving and ray_ends_m is not None and origin_m is not None:
+            self._ensure(np.vstack((points_map_m, ray_ends_m, np.asarray([origin_m]))))
+        else:
+            self._ensure(points_map_m)
         if self.values.shape != shape:
             self._costs = None  # grown: the cost table is rebuilt whole
         res = self.resolution_m
@@ -120,19 +152,54 @@ class LikelihoodGrid:
         added = np.add.reduceat(val[order], starts)
         self.density.reshape(-1)[cells] += added.astype(np.float32)
         rad = self.radius_cells
-        self._normalise(
+        box = (
             int(ci.min()) - rad,
             int(ci.max()) + rad + 1,
             int(cj.min()) - rad,
             int(cj.max()) + rad + 1,
         )
+        if not self.carve_free_space:
+            self._normalise(*box)
+            return
+        self.hits.reshape(-1)[cells] += np.float32(1.0)
+        self.stamped.reshape(-1)[cells] = self.inserted
+        i0, i1, j0, j1 = self._normalise(*box)
+        h = self.hits[i0:i1, j0:j1]
+        seen = h + self.misses[i0:i1, j0:j1]
+        self.values[i0:i1, j0:j1] *= np.where(seen > 0.0, h / np.maximum(seen, 1.0), 1.0).astype(
+            np.float32
+        )
+        if not carving or ray_ends_m is None or origin_m is None:
+            return
+        end_v, end_u = self.cell_coords(ray_ends_m)
+        orig_v, orig_u = self.cell_coords(np.asarray([origin_m], dtype=np.float64))
+        changed = kernels.carve(
+            self.density,
+            self.values,
+            self.hits,
+            self.misses,
+            self.stamped,
+            self.inserted,
+            rad,
+            float(orig_v[0]),
+            float(orig_u[0]),
+            end_v,
+            end_u,
+            float(self.carve_margin_m or 0.0) / self.resolution_m,
+        )
+        if changed[1] > changed[0]:
+            self._mark_dirty(changed)
 
-    def _normalise(self, i0: int, i1: int, j0: int, j1: int) -> None:
+    def _normalise(self, i0: int, i1: int, j0: int, j1: int) -> tuple[int, int, int, int]:
         """field = density / its maximum within the stamp radius, over rows i0:i1, columns
         j0:j1: the surface's profile across it, peaking at 1 on the mean of its hits."""
         h, w = self.values.shape
         changed = (max(0, i0), min(h, i1), max(0, j0), min(w, j1))
         kernels.normalise(self.density, self.values, self.radius_cells, *changed)
+        self._mark_dirty(changed)
+        return changed
+
+    def _mark_dirty(self, changed: tuple[int, int, int, int]) -> None:
         d = self._dirty
         self._dirty = (
             changed
@@ -162,6 +229,10 @@ class LikelihoodGrid:
             self.origin_m = (ox, oy)
             self.values = np.zeros((ny, nx), dtype=np.float32)
             self.density = np.zeros((ny, nx), dtype=np.float32)
+            if self.carve_free_space:
+                self.hits = np.zeros((ny, nx), dtype=np.float32)
+                self.misses = np.zeros((ny, nx), dtype=np.float32)
+                self.stamped = np.zeros((ny, nx), dtype=np.int32)
             return
 
         def extra(short_m: float) -> int:  # cells to add on a side short by `short_m`
@@ -177,6 +248,11 @@ class LikelihoodGrid:
             return grown
 
         self.values, self.density = grow(self.values), grow(self.density)
+        if self.carve_free_space:
+            self.hits, self.misses = grow(self.hits), grow(self.misses)
+            stamped = np.zeros(shape, dtype=np.int32)
+            stamped[add_down : add_down + h, add_left : add_left + w] = self.stamped
+            self.stamped = stamped
         self.origin_m = (ox - add_left * res, oy - add_down * res)
 
     # ------------------------------------------------------------------ reading

@@ -57,6 +57,9 @@ class MatcherParams:
     surface_max_gap_m: float = 0.5  # neighbouring returns closer than this are one surface ...
     surface_gap_per_range: float = 0.1  # ... or than this × their range (grazing walls)
     scans_per_submap: int = 30  # a new submap every this many keyframes
+    # Rays lower the field where they saw through (a person's trail), up to this short of
+    # their return (None: no carving)
+    carve_margin_m: float | None = 0.1
     # --- keyframes (the motion filter): the paper's scan spacing
     keyframe_distance_m: float = 0.3
     keyframe_angle_deg: float = 10.0
@@ -421,9 +424,10 @@ class ScanMatcherFrontEnd:
             np.hypot(returns[:, 0], returns[:, 1]) <= min(p.max_range_m, scan.range_max_m)
         ]
         world = surface_in_map(pts, pose, p)
+        ends = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
         if not self._submaps or self._submaps[-1].inserted >= p.scans_per_submap:
-            self._submaps.append(LikelihoodGrid(p.resolution_m, p.hit_sigma_m))
+            self._submaps.append(LikelihoodGrid(p.resolution_m, p.hit_sigma_m, p.carve_margin_m))
         for grid in self._submaps:
-            grid.insert(world)
+            grid.insert(world, (pose.x_m, pose.y_m), ends)
         if len(self._submaps) > 2:
             self._submaps.pop(0)  # it holds 2 × scans_per_submap: the next one takes over

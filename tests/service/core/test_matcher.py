@@ -13,10 +13,16 @@ from hypothesis import strategies as st
 from scenes import CORRIDOR, ROOM, bad_scan, grid_of, matched_points, scan_of, world_of
 
 from clients.wire import PoseFlag
+from service.core.frontend.likelihood import LikelihoodGrid
 from service.core.frontend.matcher import MatchOptions, Priors, match
-from service.core.frontend.scan_matcher import STATE_VERSION, MatcherParams, ScanMatcherFrontEnd
+from service.core.frontend.scan_matcher import (
+    STATE_VERSION,
+    MatcherParams,
+    ScanMatcherFrontEnd,
+    surface_in_map,
+)
 from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
-from service.core.types import Pose2D
+from service.core.types import Pose2D, rotate_points
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -240,3 +246,34 @@ def test_the_speed_carries_the_robot_along_a_plain_corridor() -> None:
     rel_true = start.between(truth)
     assert abs(est.x_m - rel_true.x_m) < 0.3
     assert abs(est.y_m - rel_true.y_m) < 0.05
+
+
+def _person_in_corridor(x_m: float) -> list[list[float]]:
+    """CORRIDOR's walls and a 0.4 m square person centred at (x_m, 1.0)."""
+    x0, x1 = x_m - 0.2, x_m + 0.2
+    person = [[x0, 0.8, x1, 0.8], [x1, 0.8, x1, 1.2], [x1, 1.2, x0, 1.2], [x0, 1.2, x0, 0.8]]
+    return [[-90, 0, 90, 0], [-90, 2, 90, 2], *person]
+
+
+@pytest.mark.parametrize("carve_margin_m", [0.1, None])
+def test_rays_carve_a_walkers_trail_and_keep_the_walls(carve_margin_m: float | None) -> None:
+    """A person walks 0.3 m ahead between two keyframes: the second keyframe's rays cross
+    where the first saw them, so the submap forgets that spot (no trail to pull the next scan
+    back), while the corridor's walls, crossed at grazing angles by many rays, stay."""
+    rng = np.random.default_rng(7)
+    params = MatcherParams(carve_margin_m=carve_margin_m)
+    grid = LikelihoodGrid(params.resolution_m, params.hit_sigma_m, carve_margin_m)
+    for k, person_x in enumerate((3.0, 3.3)):
+        pose = Pose2D(0.3 * k, 1.0, 0.0)
+        scan = scan_of(world_of(_person_in_corridor(person_x), 60.0, 60.0), pose, rng)
+        returns = scan.points_xy_m()
+        ends = rotate_points(returns, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+        grid.insert(surface_in_map(returns, pose, params), (pose.x_m, pose.y_m), ends)
+    # Where the first keyframe saw the person's face (x = 2.8 m), short of the second's stamps.
+    old_face = grid.interpolate(np.array([[x, 1.0] for x in (2.7, 2.75, 2.8)]))[0].max()
+    walls = grid.interpolate(np.array([[x, y] for x in (1.0, 3.0, 6.0) for y in (0.0, 2.0)]))[0]
+    assert walls.min() > 0.8  # (the peak lies between cell centres: 0.88 at x = 1 m)
+    if carve_margin_m is None:
+        assert old_face > 0.9
+    else:
+        assert old_face < 0.3
