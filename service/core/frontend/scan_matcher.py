@@ -78,6 +78,9 @@ class MatcherParams:
     position_floor_m: float = 0.01
     heading_floor_deg: float = 0.2
     odometry_sigma_ratio: float = 0.1  # odometry's σ per metre / radian of its motion
+    # ... scaled by how far the matches have disagreed with it, over about this many scans (a
+    # robot's odometry is as good as its wheels and floor, not as the defaults above guess)
+    odometry_noise_memory_scans: int = 50
     # --- match and walls
     match: MatchOptions = field(default_factory=MatchOptions)
     walls: WallOptions = field(default_factory=WallOptions)
@@ -108,6 +111,7 @@ class MatcherState:
     # velocity's last measurement
     pose_cov: FloatArray  # the pose's covariance against the submap (map axes)
     odom: Pose2D | None
+    odom_noise_scale2: FloatArray  # (translation, rotation): the odometry's variance scale
     submaps: list[LikelihoodGrid]
     keyframe_pose: Pose2D | None
     cov_since_keyframe: FloatArray
@@ -174,6 +178,7 @@ class ScanMatcherFrontEnd:
         self._velocity_anchor: tuple[Pose2D, int, FloatArray] | None = None
         self._pose_cov = np.zeros((3, 3))
         self._odom: Pose2D | None = None
+        self._odom_noise_scale2 = np.ones(2)
         self._submaps: list[LikelihoodGrid] = []
         self._keyframe_pose: Pose2D | None = None
         self._cov_since_keyframe = np.zeros((3, 3))
@@ -194,6 +199,7 @@ class ScanMatcherFrontEnd:
             self._velocity_anchor,
             self._pose_cov,
             self._odom,
+            self._odom_noise_scale2,
             self._submaps,
             self._keyframe_pose,
             self._cov_since_keyframe,
@@ -214,6 +220,8 @@ class ScanMatcherFrontEnd:
         self._velocity, self._velocity_cov = state.velocity, state.velocity_cov
         self._velocity_anchor, self._pose_cov = state.velocity_anchor, state.pose_cov
         self._odom, self._submaps = state.odom, state.submaps
+        # (a state saved before the odometry's noise was learnt starts from its defaults)
+        self._odom_noise_scale2 = getattr(state, "odom_noise_scale2", np.ones(2))
         self._keyframe_pose, self._cov_since_keyframe = (
             state.keyframe_pose,
             state.cov_since_keyframe,
@@ -265,6 +273,8 @@ class ScanMatcherFrontEnd:
             sig_t = math.radians(p.heading_floor_deg) + p.odometry_sigma_ratio * abs(
                 delta.theta_rad
             )
+            scale = np.sqrt(np.maximum(self._odom_noise_scale2, 1.0))
+            sig_xy, sig_t = sig_xy * float(scale[0]), sig_t * float(scale[1])
             flags = PoseFlag.ODOMETRY_PRIOR
         else:
             t = min(gap_s, p.max_extrapolation_s)
@@ -321,6 +331,9 @@ class ScanMatcherFrontEnd:
                 else PoseFlag.NO_DOMINANT_WALL
             )
         flags |= self._ambiguity(h_scan)
+        learnt = PoseFlag.ODOMETRY_PRIOR | PoseFlag.RELOCALISED
+        if flags & learnt == PoseFlag.ODOMETRY_PRIOR and self._pose is not None:
+            self._learn_odometry_noise(pose, predicted, cov_pred)
         # The covariance relative to the latest keyframe: a Kalman step of the motion since it.
         prior_cov = self._cov_since_keyframe + cov_pred
         cov = np.linalg.inv(np.linalg.inv(prior_cov) + h_scan)
@@ -364,6 +377,21 @@ class ScanMatcherFrontEnd:
             return PoseFlag.NONE
         weak = evecs[:, 0]
         return PoseFlag.AMBIGUOUS_X if abs(weak[0]) >= abs(weak[1]) else PoseFlag.AMBIGUOUS_Y
+
+    def _learn_odometry_noise(self, pose: Pose2D, predicted: Pose2D, cov_pred: FloatArray) -> None:
+        """The odometry's variance scale (translation, rotation): a running mean of its
+        innovations' square in units of its default σ, each capped at 10² (a slip or a
+        relocalisation is one scan's outlier, not the odometry's noise)."""
+        d = np.array(
+            [pose.x_m - predicted.x_m, pose.y_m - predicted.y_m, predicted.between(pose).theta_rad]
+        )
+        z2 = d * d / np.diag(cov_pred)  # in units of the σ used, which the scale widened
+        scale2 = np.maximum(self._odom_noise_scale2, 1.0)
+        measured = np.array([0.5 * (z2[0] + z2[1]) * scale2[0], z2[2] * scale2[1]])
+        alpha = 1.0 / max(1, self.params.odometry_noise_memory_scans)
+        self._odom_noise_scale2 = (1.0 - alpha) * self._odom_noise_scale2 + alpha * np.minimum(
+            measured, 100.0
+        )
 
     def _velocity_noise(self, gap_s: float) -> FloatArray:
         p = self.params
