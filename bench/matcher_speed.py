@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.profile_estimator import aces_scans, live_scans, synthetic_scans
+from bench.profile_estimator import aces_scans, live_scans, module_of_tree, synthetic_scans
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
 from service.core.types import LaserScan, Pose2D
 
@@ -42,20 +42,8 @@ log = logging.getLogger(__name__)
 
 def load_front_end(root: Path) -> Any:
     """`ScanMatcherFrontEnd` of the source tree `root` (its own `service` package, not ours)."""
-    ours = {k: sys.modules.pop(k) for k in list(sys.modules) if k.split(".")[0] == "service"}
-    sys.path.insert(0, str(root))
-    try:
-        import service.core.frontend.scan_matcher as other
-
-        if not Path(other.__file__ or "").resolve().is_relative_to(root.resolve()):
-            raise SystemExit(f"{root}: no service/core/frontend/scan_matcher.py there")
-        make = lambda: other.ScanMatcherFrontEnd(other.MatcherParams(use_odometry=False))  # noqa: E731
-    finally:
-        sys.path.remove(str(root))
-        for k in [k for k in sys.modules if k.split(".")[0] == "service"]:
-            del sys.modules[k]
-        sys.modules.update(ours)
-    return make
+    other = module_of_tree(root, "service.core.frontend.scan_matcher")
+    return lambda: other.ScanMatcherFrontEnd(other.MatcherParams(use_odometry=False))
 
 
 def ours() -> ScanMatcherFrontEnd:

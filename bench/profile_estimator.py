@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import importlib
 import io
 import os
 import pstats
@@ -32,6 +33,7 @@ import time
 from collections.abc import Callable
 from itertools import islice
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -166,21 +168,28 @@ def print_step_costs(name: str, spent: dict[str, np.ndarray]) -> None:
     print(f"  {'(rest)':16s} {rest.mean():6.3f} / {np.median(rest):6.3f}")
 
 
-def load_estimator(root: Path) -> type[ManhattanEstimator]:
-    """`ManhattanEstimator` of the source tree `root` (its own `service` package, not ours)."""
+def module_of_tree(root: Path, name: str) -> ModuleType:
+    """The module `name` (under `service`) of the source tree `root`, imported from its own
+    `service` package beside ours, for old-against-new runs in one process."""
     ours = {k: sys.modules.pop(k) for k in list(sys.modules) if k.split(".")[0] == "service"}
     sys.path.insert(0, str(root))
     try:
-        import service.core.frontend.estimator as other
-
-        if not Path(other.__file__ or "").resolve().is_relative_to(root.resolve()):
-            raise SystemExit(f"{root}: no service/core/frontend/estimator.py there")
-        cls: type[ManhattanEstimator] = other.ManhattanEstimator
+        module = importlib.import_module(name)
+        if not Path(module.__file__ or "").resolve().is_relative_to(root.resolve()):
+            raise SystemExit(f"{root}: no {name.replace('.', '/')}.py there")
     finally:
         sys.path.remove(str(root))
         for k in [k for k in sys.modules if k.split(".")[0] == "service"]:
             del sys.modules[k]
         sys.modules.update(ours)
+    return module
+
+
+def load_estimator(root: Path) -> type[ManhattanEstimator]:
+    """`ManhattanEstimator` of the source tree `root` (its own `service` package, not ours)."""
+    cls: type[ManhattanEstimator] = module_of_tree(
+        root, "service.core.frontend.estimator"
+    ).ManhattanEstimator
     return cls
 
 
