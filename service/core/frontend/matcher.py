@@ -27,6 +27,10 @@ independent evidence (Cartographer scales its occupied-space residuals the same 
    with the prediction, the estimate there. Elsewhere the Hessian stands.
 4. *Covariance*: the inverse of the Hessian so corrected. A plain corridor gives the scan no
    information along its axis, so there only the prior's σ remains: long along, short across.
+
+The motion prior is a mixture: that Gaussian, or at a fixed cost (`broad_cost`) anywhere in a
+broad window. The broad component is matched (steps 1-4 over the broad window) only when the
+narrow match costs more than `broad_cost`, the only case where it can win (`match`).
 """
 
 from __future__ import annotations
