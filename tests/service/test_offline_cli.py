@@ -170,47 +170,22 @@ def test_map_recording_writes_every_output(
 
 @pytest.mark.slow
 @pytest.mark.timeout(180)
-def test_map_with_the_matcher_front_end(recording: tuple[Path, list[int]], tmp_path: Path) -> None:
-    """`--front-end matcher` maps the same recording through the same outputs, and its
-    trajectory follows the simulated truth."""
+@pytest.mark.parametrize("front_end", ["matcher", "paper"])
+def test_map_with_another_front_end(
+    front_end: str, recording: tuple[Path, list[int]], tmp_path: Path
+) -> None:
+    """`--front-end matcher|paper` maps the same recording through the same outputs, and its
+    trajectory follows the simulated truth. Poses are compared relative to the first one: the
+    matcher's map frame is the first scan's, the paper's y axis is the first scan's major wall
+    (the paper's standard direction)."""
     from sensor_agent.sim import world as sim
 
     path, stamps = recording
-    out = tmp_path / "matcher"
-    result = _run_cli(path, "--out", out, "--no-odom", "--no-progress", "--front-end", "matcher")
+    out = tmp_path / front_end
+    result = _run_cli(path, "--out", out, "--no-odom", "--no-progress", "--front-end", front_end)
     assert result.returncode == 0, result.stderr
     report = _check_outputs(out, stamps)
-    assert report["front_end"] == "matcher"
-    truth = sim.generate_trajectory(sim.generate_building(3, "small"), 3, spacing_m=0.3).poses
-    est = np.array(
-        [
-            [float(v) for v in line.split()[1:3]]
-            for line in (out / "trajectory.tum").read_text().splitlines()
-        ]
-    )
-    # The map frame is the first scan's: compare displacements from the first pose, rotated.
-    c, s = math.cos(truth[0, 2]), math.sin(truth[0, 2])
-    d = truth[:N_SCANS, :2] - truth[0, :2]
-    truth_local = np.column_stack((c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]))
-    error_m = np.hypot(*(est - truth_local).T)
-    # 60 scans, 18 m at the paper's spacing, no loop closure: within 0.3 m everywhere.
-    assert float(np.max(error_m)) < 0.3, error_m.max()
-
-
-@pytest.mark.slow
-@pytest.mark.timeout(180)
-def test_map_with_the_paper_front_end(recording: tuple[Path, list[int]], tmp_path: Path) -> None:
-    """`--front-end paper` maps the same recording through the same outputs, and its trajectory
-    follows the simulated truth. Its map's y axis is the first scan's major wall (the paper's
-    standard direction), so poses are compared relative to the first one."""
-    from sensor_agent.sim import world as sim
-
-    path, stamps = recording
-    out = tmp_path / "paper"
-    result = _run_cli(path, "--out", out, "--no-odom", "--no-progress", "--front-end", "paper")
-    assert result.returncode == 0, result.stderr
-    report = _check_outputs(out, stamps)
-    assert report["front_end"] == "paper"
+    assert report["front_end"] == front_end
     truth = sim.generate_trajectory(sim.generate_building(3, "small"), 3, spacing_m=0.3).poses
     rows = [line.split() for line in (out / "trajectory.tum").read_text().splitlines()]
     est = np.array(

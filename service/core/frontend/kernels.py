@@ -381,28 +381,35 @@ def stamp_cells(
 
 
 @_jit
+def _normalised(density: F32Array, rad: int, i: int, j: int) -> np.float32:
+    """The field at cell (i, j): its density over the maximum of the (2·rad + 1)² window
+    (clipped to the grid), 0 where that maximum is at most 1e-3. Maxima are exact in any order;
+    the division is float32's."""
+    h, w = density.shape
+    floor = np.float32(1e-3)
+    d = density[i, j]
+    peak = d
+    for ii in range(max(0, i - rad), min(h, i + rad + 1)):
+        for jj in range(max(0, j - rad), min(w, j + rad + 1)):
+            peak = max(peak, density[ii, jj])
+    return d / max(peak, floor) if peak > floor else np.float32(0.0)
+
+
+@_jit
 def normalise(  # noqa: PLR0917 - numba takes no keyword-only arguments
     density: F32Array, values: F32Array, rad: int, i0: int, i1: int, j0: int, j1: int
 ) -> None:
     """`LikelihoodGrid._normalise` over rows i0:i1, columns j0:j1 (within the grid): the field
     = density / its maximum over the (2·rad + 1)² window (clipped to the grid), 0 where that
     maximum is at most 1e-3. Where the density is 0 (most of a scan's box: open space) so is
-    the field, whatever the maximum, so the window is read only where it is not. Maxima are
-    exact in any order; the division is float32's."""
-    h, w = density.shape
-    floor = np.float32(1e-3)
+    the field, whatever the maximum, so the window is read only where it is not
+    (`_normalised`)."""
     for i in range(i0, i1):
-        r0, r1 = max(0, i - rad), min(h, i + rad + 1)
         for j in range(j0, j1):
-            d = density[i, j]
-            if not d > 0.0:
+            if density[i, j] > 0.0:
+                values[i, j] = _normalised(density, rad, i, j)
+            else:
                 values[i, j] = np.float32(0.0)
-                continue
-            peak = d
-            for ii in range(r0, r1):
-                for jj in range(max(0, j - rad), min(w, j + rad + 1)):
-                    peak = max(peak, density[ii, jj])
-            values[i, j] = d / max(peak, floor) if peak > floor else np.float32(0.0)
 
 
 @_jit
@@ -427,7 +434,6 @@ def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
     `this_insert`) is a surface seen now, not free: a ray grazing a wall does not erode it.
     Returns the box (rows i0:i1, columns j0:j1) of the field changed."""
     h, w = density.shape
-    floor = np.float32(1e-3)
     bi0, bi1, bj0, bj1 = h, 0, w, 0
     for k in range(end_rows.shape[0]):
         dr = end_rows[k] - origin_row
@@ -448,14 +454,9 @@ def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
             if stamped[i, j] == this_insert:
                 continue
             misses[i, j] += np.float32(1.0)
-            d = density[i, j]
-            if not d > 0.0:
+            if not density[i, j] > 0.0:
                 continue
-            peak = d
-            for ii in range(max(0, i - rad), min(h, i + rad + 1)):
-                for jj in range(max(0, j - rad), min(w, j + rad + 1)):
-                    peak = max(peak, density[ii, jj])
-            surface = d / max(peak, floor) if peak > floor else np.float32(0.0)
+            surface = _normalised(density, rad, i, j)
             values[i, j] = surface * hits[i, j] / (hits[i, j] + misses[i, j])
             bi0, bi1 = min(bi0, i), max(bi1, i + 1)
             bj0, bj1 = min(bj0, j), max(bj1, j + 1)

@@ -86,7 +86,6 @@ class LikelihoodGrid:
         # of their return): per cell, the keyframes that hit within a stamp of it and the rays
         # that crossed it; the field is the normalised density × hits / (hits + misses).
         self.carve_margin_m = carve_margin_m
-        self.carve_free_space = carve_margin_m is not None
         self.hits: F32Array = np.zeros((0, 0), dtype=np.float32)
         self.misses: F32Array = np.zeros((0, 0), dtype=np.float32)
         self.stamped = np.zeros((0, 0), dtype=np.int32)  # the insert that last stamped a cell
@@ -110,8 +109,8 @@ class LikelihoodGrid:
         # The caches start empty, also in a checkpoint written before they existed.
         self.__dict__.update(state)
         self._costs, self._dirty, self._cost_log = None, None, []
-        if "carve_free_space" not in state:  # written before free space was carved
-            self.carve_free_space, self.carve_margin_m = False, None
+        if "carve_margin_m" not in state:  # written before free space was carved
+            self.carve_margin_m = None
             self.hits = np.zeros((0, 0), dtype=np.float32)
             self.misses = np.zeros((0, 0), dtype=np.float32)
             self.stamped = np.zeros((0, 0), dtype=np.int32)
@@ -132,11 +131,11 @@ class LikelihoodGrid:
         if points_map_m.shape[0] == 0:
             return
         shape = self.values.shape
-        carving = self.carve_free_space and origin_m is not None and ray_ends_m is not None
-        if carving and ray_ends_m is not None and origin_m is not None:
-            self._ensure(np.vstack((points_map_m, ray_ends_m, np.asarray([origin_m]))))
-        else:
-            self._ensure(points_map_m)
+        margin_m = self.carve_margin_m
+        rays = None  # (the rays' origin as a (1, 2) array, their ends) when they carve
+        if margin_m is not None and origin_m is not None and ray_ends_m is not None:
+            rays = (np.asarray([origin_m], dtype=np.float64), ray_ends_m)
+        self._ensure(points_map_m if rays is None else np.vstack((points_map_m, *rays)))
         if self.values.shape != shape:
             self._costs = None  # grown: the cost table is rebuilt whole
         res = self.resolution_m
@@ -158,7 +157,7 @@ class LikelihoodGrid:
             int(cj.min()) - rad,
             int(cj.max()) + rad + 1,
         )
-        if not self.carve_free_space:
+        if margin_m is None:
             self._normalise(*box)
             return
         self.hits.reshape(-1)[cells] += np.float32(1.0)
@@ -169,10 +168,10 @@ class LikelihoodGrid:
         self.values[i0:i1, j0:j1] *= np.where(seen > 0.0, h / np.maximum(seen, 1.0), 1.0).astype(
             np.float32
         )
-        if not carving or ray_ends_m is None or origin_m is None:
+        if rays is None:
             return
-        end_v, end_u = self.cell_coords(ray_ends_m)
-        orig_v, orig_u = self.cell_coords(np.asarray([origin_m], dtype=np.float64))
+        orig_v, orig_u = self.cell_coords(rays[0])
+        end_v, end_u = self.cell_coords(rays[1])
         changed = kernels.carve(
             self.density,
             self.values,
@@ -185,7 +184,7 @@ class LikelihoodGrid:
             float(orig_u[0]),
             end_v,
             end_u,
-            float(self.carve_margin_m or 0.0) / self.resolution_m,
+            margin_m / self.resolution_m,
         )
         if changed[1] > changed[0]:
             self._mark_dirty(changed)
@@ -229,7 +228,7 @@ class LikelihoodGrid:
             self.origin_m = (ox, oy)
             self.values = np.zeros((ny, nx), dtype=np.float32)
             self.density = np.zeros((ny, nx), dtype=np.float32)
-            if self.carve_free_space:
+            if self.carve_margin_m is not None:
                 self.hits = np.zeros((ny, nx), dtype=np.float32)
                 self.misses = np.zeros((ny, nx), dtype=np.float32)
                 self.stamped = np.zeros((ny, nx), dtype=np.int32)
@@ -248,7 +247,7 @@ class LikelihoodGrid:
             return grown
 
         self.values, self.density = grow(self.values), grow(self.density)
-        if self.carve_free_space:
+        if self.carve_margin_m is not None:
             self.hits, self.misses = grow(self.hits), grow(self.misses)
             stamped = np.zeros(shape, dtype=np.int32)
             stamped[add_down : add_down + h, add_left : add_left + w] = self.stamped
