@@ -28,9 +28,11 @@ independent evidence (Cartographer scales its occupied-space residuals the same 
 4. *Covariance*: the inverse of the Hessian so corrected. A plain corridor gives the scan no
    information along its axis, so there only the prior's σ remains: long along, short across.
 
-The motion prior is a mixture: that Gaussian, or at a fixed cost (`broad_cost`) anywhere in a
-broad window. The broad component is matched (steps 1-4 over the broad window) only when the
-narrow match costs more than `broad_cost`, the only case where it can win (`match`).
+The motion prior is a max-mixture: that Gaussian; optionally a second Gaussian, another model
+of the same motion (`Priors.second`: constant velocity when the first is odometry), at a fixed
+cost (`second_cost`); or at a fixed cost (`broad_cost`) anywhere in a broad window. A component
+with a cost is matched (steps 1-4 under its prior) only when the best match so far costs more
+than that, the only case where it can win (`match`).
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ class MatchOptions:
     # weight), anywhere in a broad window (stamps that lie, a stale scan, a kick). Searched
     # only when the match costs more than this, since it can only win then.
     broad_cost: float = 150.0
+    second_cost: float = 20.0  # -2 ln of the weight of the second component (`Priors.second`)
     broad_search_m: float = 1.0  # the broad window: ± this in x and y ...
     broad_search_rad: float = math.radians(90.0)  # ... and ± this in θ
 
@@ -78,6 +81,9 @@ class Priors:
     cov_pred: FloatArray  # (3, 3), map axes
     wall_heading_rad: float | None = None  # absolute heading the walls say (nearest member)
     wall_sigma_rad: float = math.inf
+    # The motion prior's second component, (pose, covariance), at `second_cost`: another model
+    # of the same motion (constant velocity when the first is odometry). None: none.
+    second: tuple[Pose2D, FloatArray] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,6 +95,7 @@ class MatchResult:
     searched_cells: int  # poses scored by the search
     cost: float  # the objective at the refined pose (the broad component's includes its cost)
     broad: bool = False  # won by the motion prior's broad component: the prediction was wrong
+    second: bool = False  # won by its second component (`Priors.second`)
 
 
 def _delta(pose: Pose2D, ref: Pose2D) -> FloatArray:
@@ -304,9 +311,16 @@ def match(
     grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
 ) -> MatchResult:
     """The scan's pose in the map frame and how sure it is, under the mixture motion prior:
-    matched around the prediction; where that costs more than `broad_cost`, matched again over
-    the broad window, which wins if it costs `broad_cost` less."""
+    matched around the prediction; where that costs more than `second_cost`, matched again
+    under the second component if there is one, which wins if it costs `second_cost` less;
+    where the best costs more than `broad_cost`, matched again over the broad window, which
+    wins if it costs `broad_cost` less."""
     result = _match_component(grid, points_xy_m, priors, opts)
+    if priors.second is not None and result.cost > opts.second_cost:
+        second = Priors(*priors.second, priors.wall_heading_rad, priors.wall_sigma_rad)
+        other = _match_component(grid, points_xy_m, second, opts)
+        if other.cost + opts.second_cost < result.cost:
+            result = replace(other, cost=other.cost + opts.second_cost, second=True)
     if result.cost <= opts.broad_cost:
         return result
     # The broad component: a Gaussian as wide as its window (it keeps the refinement and the

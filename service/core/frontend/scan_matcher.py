@@ -262,37 +262,46 @@ class ScanMatcherFrontEnd:
 
     def _predict(self, scan: LaserScan) -> tuple[Pose2D, FloatArray, PoseFlag]:
         """Predicted pose, its covariance (map axes), and the ODOMETRY_PRIOR flag if used."""
+        odometry = self._odometry_prediction(scan)
+        if odometry is None:
+            pose, cov = self._velocity_prediction(scan)
+            return pose, cov, PoseFlag.NONE
+        return *odometry, PoseFlag.ODOMETRY_PRIOR
+
+    def _odometry_prediction(self, scan: LaserScan) -> tuple[Pose2D, FloatArray] | None:
+        """The pose odometry predicts and its covariance (map axes); None without odometry."""
+        p = self.params
+        odom = scan.odom if p.use_odometry else None
+        if odom is None or self._odom is None:
+            return None
+        pose = self._pose if self._pose is not None else Pose2D(0.0, 0.0, 0.0)
+        delta = self._odom.between(odom)
+        dist = math.hypot(delta.x_m, delta.y_m)
+        sig_xy = p.position_floor_m + p.odometry_sigma_ratio * dist
+        sig_t = math.radians(p.heading_floor_deg) + p.odometry_sigma_ratio * abs(delta.theta_rad)
+        scale = np.sqrt(np.maximum(self._odom_noise_scale2, 1.0))
+        sig_xy, sig_t = sig_xy * float(scale[0]), sig_t * float(scale[1])
+        return pose.compose(delta), np.diag([sig_xy**2, sig_xy**2, sig_t**2])
+
+    def _velocity_prediction(self, scan: LaserScan) -> tuple[Pose2D, FloatArray]:
+        """The pose constant velocity predicts and its covariance (map axes)."""
         p = self.params
         pose = self._pose if self._pose is not None else Pose2D(0.0, 0.0, 0.0)
         gap_s = 0.0 if self._stamp_ns is None else max(0.0, (scan.stamp_ns - self._stamp_ns) * 1e-9)
-        odom = scan.odom if p.use_odometry else None
-        if odom is not None and self._odom is not None:
-            delta = self._odom.between(odom)
-            dist = math.hypot(delta.x_m, delta.y_m)
-            sig_xy = p.position_floor_m + p.odometry_sigma_ratio * dist
-            sig_t = math.radians(p.heading_floor_deg) + p.odometry_sigma_ratio * abs(
-                delta.theta_rad
-            )
-            scale = np.sqrt(np.maximum(self._odom_noise_scale2, 1.0))
-            sig_xy, sig_t = sig_xy * float(scale[0]), sig_t * float(scale[1])
-            flags = PoseFlag.ODOMETRY_PRIOR
-        else:
-            t = min(gap_s, p.max_extrapolation_s)
-            v = self._velocity
-            delta = Pose2D(v[0] * t, v[1] * t, v[2] * t)
-            # The velocity's own uncertainty over the extrapolated time, and beyond it, what the
-            # robot may have done during a pause nobody saw.
-            anchor = self._velocity_anchor
-            since_s = gap_s if anchor is None else (scan.stamp_ns - anchor[1]) * 1e-9
-            var = np.diag(self._velocity_cov + self._velocity_noise(since_s)) * t * t
-            beyond_s = gap_s - t
-            sig_xy = math.sqrt(max(var[0], var[1]) + (p.gap_speed_m_s * beyond_s) ** 2)
-            sig_xy += p.position_floor_m
-            sig_t = math.sqrt(var[2] + math.radians(p.gap_turn_rate_deg_s * beyond_s) ** 2)
-            sig_t += math.radians(p.heading_floor_deg)
-            flags = PoseFlag.NONE
-        cov = np.diag([sig_xy**2, sig_xy**2, sig_t**2])
-        return pose.compose(delta), cov, flags
+        t = min(gap_s, p.max_extrapolation_s)
+        v = self._velocity
+        delta = Pose2D(v[0] * t, v[1] * t, v[2] * t)
+        # The velocity's own uncertainty over the extrapolated time, and beyond it, what the
+        # robot may have done during a pause nobody saw.
+        anchor = self._velocity_anchor
+        since_s = gap_s if anchor is None else (scan.stamp_ns - anchor[1]) * 1e-9
+        var = np.diag(self._velocity_cov + self._velocity_noise(since_s)) * t * t
+        beyond_s = gap_s - t
+        sig_xy = math.sqrt(max(var[0], var[1]) + (p.gap_speed_m_s * beyond_s) ** 2)
+        sig_xy += p.position_floor_m
+        sig_t = math.sqrt(var[2] + math.radians(p.gap_turn_rate_deg_s * beyond_s) ** 2)
+        sig_t += math.radians(p.heading_floor_deg)
+        return pose.compose(delta), np.diag([sig_xy**2, sig_xy**2, sig_t**2])
 
     def _process(self, scan: LaserScan) -> PoseEstimate:
         p = self.params
@@ -309,9 +318,14 @@ class ScanMatcherFrontEnd:
             wall_rad, wall_sigma = heading_prior(
                 self._walls, wall_meas, predicted.theta_rad, p.walls
             )
-            priors = Priors(predicted, cov_pred, wall_rad, wall_sigma)
+            # With odometry, constant velocity is the motion prior's second component: a
+            # wheel's slip or a glitch of its heading is outvoted by how the robot was moving.
+            second = self._velocity_prediction(scan) if flags & PoseFlag.ODOMETRY_PRIOR else None
+            priors = Priors(predicted, cov_pred, wall_rad, wall_sigma, second)
             result = match(self._submaps[0], pts, priors, p.match)
             pose, h_scan, score = result.pose, result.scan_information, result.score
+            if result.second and second is not None:
+                cov_pred = second[1]
             if result.broad:
                 # The prediction was wrong: the motion since it is as loose as the broad window,
                 # and the velocity starts again from this scan, as after a pause.
@@ -332,8 +346,13 @@ class ScanMatcherFrontEnd:
             )
         flags |= self._ambiguity(h_scan)
         learnt = PoseFlag.ODOMETRY_PRIOR | PoseFlag.RELOCALISED
-        if flags & learnt == PoseFlag.ODOMETRY_PRIOR and self._pose is not None:
-            self._learn_odometry_noise(pose, predicted, cov_pred)
+        odometry = self._odometry_prediction(scan)
+        if (
+            flags & learnt == PoseFlag.ODOMETRY_PRIOR
+            and odometry is not None
+            and self._pose is not None
+        ):
+            self._learn_odometry_noise(pose, *odometry)
         # The covariance relative to the latest keyframe: a Kalman step of the motion since it.
         prior_cov = self._cov_since_keyframe + cov_pred
         cov = np.linalg.inv(np.linalg.inv(prior_cov) + h_scan)
