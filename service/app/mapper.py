@@ -59,6 +59,7 @@ from clients.recording import RecordingReport, RecordingWriter
 from clients.wire import Pose, PoseFlag, Scan, decode_scan, encode_pose
 from service.app import statecodec
 from service.core.frontend.params import EstimatorParams
+from service.core.frontend.scan_matcher import warm_up
 from service.core.maps.grid import GridImage
 from service.core.slam import (
     DEFAULT_INTEGRATE_EVERY,
@@ -469,6 +470,8 @@ def _serve(
         format=f"%(asctime)s %(levelname)-7s [mapper-{os.getpid()}] %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    # The matcher's compiled kernels load (or compile) now, not on a robot's first scan.
+    threading.Thread(target=warm_up, name="warm-up", daemon=True).start()
     mappers: dict[str, LocalMapper] = {}
     leases: dict[str, _Lease] = {}
     # The pipe loop and the ingest worker both use mappers and leases: one at a time.

@@ -37,6 +37,7 @@ from service.app.publishers import DUPLICATE_PUBLISHERS, PublisherGuard, Publish
 from service.app.sessions import SessionManager
 from service.app.settings import ServiceSettings, is_loopback_host
 from service.app.store import DataDir, MapStore
+from service.core.frontend.scan_matcher import warm_up
 
 if TYPE_CHECKING:
     from clients.wire import Pose
@@ -89,6 +90,9 @@ class MappingRuntime:
             if processes
             else None
         )
+        if self.mapper_pool is None:  # this process maps: its kernels load now (the processes'
+            # do at their start), not on a robot's first scan
+            threading.Thread(target=warm_up, name="warm-up", daemon=True).start()
         self.sessions = SessionManager(
             self.data,
             self.maps,

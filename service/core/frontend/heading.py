@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from service.core.frontend import kernels
 from service.core.types import FloatArray, parabolic_offset
 
 QUARTER = math.pi / 2.0
@@ -108,21 +109,24 @@ def _projection_indices(
     return proj, idx, width
 
 
+def _hard_offset(points_xy_m: FloatArray, bin_m: float) -> tuple[int, int]:
+    """(offset, width) in bins of hard bins: the offset from the largest range instead of the
+    data's extremes (only bin membership matters for hard bins, and an offset by whole bins
+    does not change it)."""
+    x, y = points_xy_m[:, 0], points_xy_m[:, 1]
+    r2_max = float((x * x + y * y).max()) if points_xy_m.shape[0] else 0.0  # not sum(axis=1)
+    r_bins = math.sqrt(r2_max) / bin_m
+    lo = -math.ceil(r_bins) - 1
+    return lo, math.ceil(r_bins) - lo + 2
+
+
 def _hard_indices(
     points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float
 ) -> tuple[npt.NDArray[np.intp], int]:
-    """Flat bin indices (M, 2K) for hard binning.
-
-    The bin offset comes from the largest range instead of the data's extremes: only bin
-    membership matters for hard bins, and an offset by whole bins does not change it.
-    """
+    """Flat bin indices (M, 2K) for hard binning (offset: `_hard_offset`)."""
     k = angles_rad.shape[0]
     m = points_xy_m.shape[0]
-    x, y = points_xy_m[:, 0], points_xy_m[:, 1]
-    r2_max = float((x * x + y * y).max()) if m else 0.0  # not sum(axis=1): slow on 2 columns
-    r_bins = math.sqrt(r2_max) / bin_m
-    lo = -math.ceil(r_bins) - 1
-    width = math.ceil(r_bins) - lo + 2
+    lo, width = _hard_offset(points_xy_m, bin_m)
     proj = _scratch("proj", m * 2 * k, np.float64).reshape(m, 2 * k)
     _rotate_into(points_xy_m, _rotation_columns(angles_rad, bin_m), proj)
     proj -= float(lo)
@@ -185,13 +189,15 @@ def heading_scores(
         sq = np.einsum("ij,ij->i", h, h)
         return np.asarray(sq[:k] + sq[k:], dtype=np.float64)
     # Hard bins: integer counts, so Σ h² and the maxima are exact in int64.
-    hidx, width = _hard_indices(points_xy_m, angles_rad, bin_m)
-    hi = np.bincount(hidx.ravel(), minlength=2 * k * width)[: 2 * k * width].reshape(2 * k, width)
     if score == "max":
+        hidx, width = _hard_indices(points_xy_m, angles_rad, bin_m)
+        n_bins = 2 * k * width
+        hi = np.bincount(hidx.ravel(), minlength=n_bins)[:n_bins].reshape(2 * k, width)
         per_row = hi.max(axis=1)
         return np.asarray(per_row[:k] + per_row[k:], dtype=np.float64)
-    sqi = np.einsum("ij,ij->i", hi, hi)
-    return np.asarray(sqi[:k] + sqi[k:], dtype=np.float64)
+    lo, width = _hard_offset(points_xy_m, bin_m)
+    columns = _rotation_columns(angles_rad, bin_m)
+    return kernels.hard_energies(points_xy_m, columns, float(lo), width).astype(np.float64)
 
 
 @dataclass(frozen=True, slots=True)

@@ -461,3 +461,32 @@ def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
             bi0, bi1 = min(bi0, i), max(bi1, i + 1)
             bj0, bj1 = min(bj0, j), max(bj1, j + 1)
     return bi0, bi1, bj0, bj1
+
+
+@_jit
+def hard_energies(
+    points_xy_m: FloatArray, columns: FloatArray, offset_bins: float, width: int
+) -> IntArray:
+    """`heading.heading_scores` with hard bins: Σ h² of each column's projection histogram (2K
+    columns: x then y coordinates of R(α)·p in bin units, `heading._rotation_columns`), the
+    x and y sums added per angle. Each coordinate is x·c₀ + y·c₁ - offset_bins, rounded as
+    numpy's elementwise ufuncs round it, truncated to its bin; Σ h² grows by 2h + 1 per point
+    that joins a bin of h, so the counts are exact and no (M, 2K) index array is written."""
+    n_cols = columns.shape[1]
+    k = n_cols // 2
+    hist = np.zeros(width, dtype=np.int64)
+    energy = np.zeros(n_cols, dtype=np.int64)
+    for col in range(n_cols):
+        c0, c1 = columns[0, col], columns[1, col]
+        hist[:] = 0
+        e = 0
+        for p in range(points_xy_m.shape[0]):
+            a = points_xy_m[p, 0] * c0
+            b = points_xy_m[p, 1] * c1
+            b = a + b
+            b = b - offset_bins
+            i = int(b)
+            e += 2 * hist[i] + 1
+            hist[i] += 1
+        energy[col] = e
+    return energy[:k] + energy[k:]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scenes import PARAMS, grid_of, matched_points, scan_of, world_of
 
-from service.core.frontend import kernels
+from service.core.frontend import heading, kernels
 from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
 from service.core.frontend.scan_matcher import surface_in_map
 from service.core.frontend.search import build_pyramid
@@ -125,3 +125,21 @@ def test_insert_is_numpys_bit_for_bit() -> None:
         assert ours.origin_m == ref.origin_m
         assert np.array_equal(ours.density, ref.density)
         assert np.array_equal(ours.values, ref.values)
+
+
+@pytest.mark.parametrize("bin_m", [0.02, 0.05, 0.1])
+def test_hard_energies_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
+    """The walls' coarse histogram: Σ h² per angle, as `np.bincount` of the bin indices gives it
+    (points on bin edges included: a point a bin apart changes the score)."""
+    grid, pts, rng = _room()
+    del grid
+    edge = np.round(pts / bin_m) * bin_m  # points exactly on bin edges at α = 0
+    for points in (pts, edge, pts[::3], rng.normal(0.0, 8.0, (500, 2))):
+        angles = np.concatenate(([0.0], rng.uniform(-math.pi / 4, math.pi / 4, 40)))
+        idx, width = heading._hard_indices(points, angles, bin_m)
+        k = angles.shape[0]
+        counts = np.bincount(idx.ravel(), minlength=2 * k * width)[: 2 * k * width]
+        sq = np.einsum("ij,ij->i", *(counts.reshape(2 * k, width),) * 2)
+        want = (sq[:k] + sq[k:]).astype(np.float64)
+        got = heading.heading_scores(points, angles, bin_m, "energy", soft=False)
+        assert np.array_equal(got, want)

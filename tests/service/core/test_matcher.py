@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from scenes import CORRIDOR, ROOM, bad_scan, grid_of, matched_points, scan_of, world_of
 
 from clients.wire import PoseFlag
+from service.core.frontend import kernels
 from service.core.frontend.likelihood import LikelihoodGrid
 from service.core.frontend.matcher import MatchOptions, Priors, match
 from service.core.frontend.scan_matcher import (
@@ -21,6 +22,7 @@ from service.core.frontend.scan_matcher import (
     MatcherParams,
     ScanMatcherFrontEnd,
     surface_in_map,
+    warm_up,
 )
 from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
 from service.core.types import Pose2D, rotate_points
@@ -44,6 +46,31 @@ def test_a_shifted_scan_is_recovered_against_its_own_submap(
     result = match(grid, matched_points(scan), Priors(predicted, cov), MatchOptions())
     assert math.hypot(result.pose.x_m - truth.x_m, result.pose.y_m - truth.y_m) < 0.01
     assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.1
+
+
+def test_a_tight_prediction_is_refined_without_the_search() -> None:
+    """At 40 Hz the prediction's ±3σ window is within the refine's reach (one cell, 2°): the
+    search is skipped, and Gauss-Newton from the prediction ends where it ends after the search
+    (within 1 mm and 0.01°; the tight prior pulls both a little off the truth). A wider
+    prediction is searched."""
+    rng = np.random.default_rng(3)
+    truth = Pose2D(3.0, 2.5, 0.3)
+    scan = scan_of(ROOM, truth, rng)
+    grid = grid_of([(scan, truth)])
+    pts = matched_points(scan)
+    predicted = Pose2D(truth.x_m + 0.02, truth.y_m - 0.015, truth.theta_rad + math.radians(0.3))
+    tight = np.diag([0.015**2, 0.015**2, math.radians(0.3) ** 2])
+    refined = match(grid, pts, Priors(predicted, tight), MatchOptions())
+    searched = match(grid, pts, Priors(predicted, tight), MatchOptions(refine_reach_m=0.0))
+    assert refined.searched_cells == 0
+    assert searched.searched_cells > 0
+    assert (
+        math.hypot(refined.pose.x_m - searched.pose.x_m, refined.pose.y_m - searched.pose.y_m)
+        < 1e-3
+    )
+    assert abs(math.degrees(refined.pose.theta_rad - searched.pose.theta_rad)) < 0.01
+    assert math.hypot(refined.pose.x_m - truth.x_m, refined.pose.y_m - truth.y_m) < 0.02
+    assert match(grid, pts, Priors(predicted, tight * 4.0), MatchOptions()).searched_cells > 0
 
 
 def test_a_prediction_far_off_is_recovered_by_the_broad_component() -> None:
@@ -345,3 +372,12 @@ def test_an_odometry_heading_glitch_is_outvoted_by_the_velocity() -> None:
     assert not any(f & PoseFlag.RELOCALISED for f in flags)
     alone, _ = _odometry_with_a_heading_glitch(MatchOptions(second_cost=math.inf))
     assert alone[20] > 0.2
+
+
+def test_warm_up_loads_every_compiled_kernel() -> None:
+    """The service calls `warm_up` at start so that a robot's first scan does not wait on numba:
+    every kernel the matcher uses has a compiled signature after it."""
+    warm_up()
+    for name in ("interpolate", "scan_jacobians", "lattice_gather", "block_bounds", "carve"):
+        assert getattr(kernels, name).signatures, name
+    assert kernels.hard_energies.signatures
