@@ -1,6 +1,6 @@
 """Accuracy evaluation: the offline mapper on ACES, Intel and synthetic buildings.
 
-    python -m bench.evaluate [--quick] [--out bench/out]
+    python -m bench.evaluate [--quick] [--out bench/out] [--front-end matcher|manhattan|paper]
 
 For each dataset, with the odometry prior and without, it runs `service.offline.map_scans`
 (the code behind `mapping-service map`), evaluates the relation metric of Kümmerle et al. 2009
@@ -10,6 +10,9 @@ printed beside the published figures of `../shared/datasets/PUBLISHED_ERRORS.md`
 Synthetic buildings have ground truth: relations between scans 1 s apart, long-range relations
 between random far-apart scans, the loop-closure gap (the loop ends where it started) and the
 largest heading error.
+
+Every run uses one front end, the default (`matcher`) unless `--front-end` names another;
+`accuracy.md` and `accuracy.json` say which.
 
 Outputs in `--out`: `accuracy.md` (the tables, for the benchmark report), `accuracy.json`, and
 one folder per run with `map.png`, `map.pgm`, `map.yaml`, `trajectory.tum` and `report.json`,
@@ -34,6 +37,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from clients.wire import OdometryPose, PoseFlag, Scan
+from service.cli import DEFAULT_FRONT_END  # the core's, without importing it
 from service.core.metrics import Relation, RelationErrors, parse_relations, relation_errors
 from service.core.types import Pose2D, wrap_angle
 
@@ -220,7 +224,7 @@ def _run_mapper(
     input_info: dict[str, Any],
     on_estimate: Any = None,
     loop_closure: bool = True,
-    front_end: FrontEndName = "manhattan",
+    front_end: FrontEndName = DEFAULT_FRONT_END,
 ) -> tuple[Any, dict[str, Any], Path]:
     from service.offline import map_scans, write_outputs
 
@@ -297,7 +301,7 @@ def evaluate_real(
     quick: bool,
     out_dir: Path,
     loop_closure: bool = True,
-    front_end: FrontEndName = "manhattan",
+    front_end: FrontEndName = DEFAULT_FRONT_END,
 ) -> RunResult:
     from clients.logs import iter_log_scans, probe_log
     from service.offline import input_summary
@@ -582,7 +586,7 @@ def evaluate_synthetic(
     use_odometry: bool,
     out_dir: Path,
     loop_closure: bool = True,
-    front_end: FrontEndName = "manhattan",
+    front_end: FrontEndName = DEFAULT_FRONT_END,
 ) -> RunResult:
     name = _slug(f"synthetic-{seq.seed}", use_odometry, loop_closure)
     run, report, png = _run_mapper(
@@ -815,8 +819,13 @@ def render_markdown(
     quick: bool,
     skipped: Sequence[str],
     published: dict[str, tuple[str, ...]],
+    front_end: str = DEFAULT_FRONT_END,
 ) -> str:
-    command = "python -m bench.evaluate" + (" --quick" if quick else "")
+    command = (
+        "python -m bench.evaluate"
+        + (" --quick" if quick else "")
+        + ("" if front_end == DEFAULT_FRONT_END else f" --front-end {front_end}")
+    )
     scope = (
         " A prefix of each real recording only: not comparable with the published figures."
         if quick
@@ -826,8 +835,9 @@ def render_markdown(
         "Mean ± std of the relation errors of Kümmerle et al. 2009 "
         "(`../shared/datasets/README.md`); published figures from `PUBLISHED_ERRORS.md` "
         "(sequential scan matching and RBPF come from a secondary transcription). "
-        f"Produced by `{command}`.{scope} Estimator time is per scan, "
-        "`ManhattanEstimator.process` only."
+        f"Produced by `{command}`.{scope} Front end: `{front_end}`"
+        f"{' (the default)' if front_end == DEFAULT_FRONT_END else ''}; estimator time is per "
+        "scan, its `process` only."
     )
     parts = ["## Accuracy (relation metric)", "", intro, ""]
     if real:
@@ -906,7 +916,7 @@ def evaluate(
     out_dir: Path = DEFAULT_OUT,
     seeds: Sequence[int] | None = None,
     datasets: Sequence[str] | None = None,
-    front_end: FrontEndName = "manhattan",
+    front_end: FrontEndName = DEFAULT_FRONT_END,
 ) -> Evaluation:
     """Run every evaluation, write `accuracy.md` and `accuracy.json` into `out_dir`."""
     start = time.perf_counter()
@@ -949,11 +959,17 @@ def evaluate(
                 )
                 _log_result(synthetic[-1])
     markdown = render_markdown(
-        real, synthetic, quick=quick, skipped=skipped, published=published_table()
+        real,
+        synthetic,
+        quick=quick,
+        skipped=skipped,
+        published=published_table(),
+        front_end=front_end,
     )
     (out_dir / "accuracy.md").write_text(markdown)
     payload = {
         "quick": quick,
+        "front_end": front_end,
         "real": [asdict(r) for r in real],
         "synthetic": [asdict(r) for r in synthetic],
         "skipped": skipped,
@@ -1008,7 +1024,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument(
         "--front-end",
         choices=FRONT_ENDS,
-        default="manhattan",
+        default=DEFAULT_FRONT_END,
         help="the front end every run uses (default: %(default)s)",
     )
     parser.add_argument("-v", "--verbose", action="store_true")

@@ -3,6 +3,7 @@
     python -m bench.worlds list [--set tuning|test]
     python -m bench.worlds write --family ring --seed 1003 --out DIR [--odom] [--rate HZ]
     python -m bench.worlds run --set test [--family F ...] [--jobs 2] [--loop-closure]
+        [--front-end matcher|manhattan|paper]
 
 `write` turns one world of `sensor_agent.sim.families` into what a user feeds the CLI:
 `<family>-<seed>.mcap` (ROS 2 `sensor_msgs/msg/LaserScan` on `/scan`, with `--odom` also
@@ -27,11 +28,12 @@ subprocess, and scores its outputs against the ground truth:
   the covariance is honest;
 - milliseconds per scan: `report.json`'s `median_ms_per_scan` (the estimator alone).
 
-Output: `<out>/<set>.md` and `<out>/<set>.json` (default `bench/out/worlds/`) and
-`bench/out/worlds.md` (every set's table found there): per family and overall as distributions
-(median, 90th percentile, worst) with the issue's targets as verdicts. For the tuning set each
-world's map picture (the CLI's `map.png`) and floor plan are kept under `<out>/tuning/`; test
-worlds are kept only as numbers (never look at a test world to fix it).
+Output: `<out>/<set>.md` and `<out>/<set>.json` (default `bench/out/worlds/`; a front end other
+than the default, `matcher`, is named in them: `<set>-manhattan.json`, ...) and
+`bench/out/worlds.md` (every default-front-end set's table found there): per family and overall
+as distributions (median, 90th percentile, worst) with the issue's targets as verdicts. For the
+tuning set each world's map picture (the CLI's `map.png`) and floor plan are kept under
+`<out>/tuning/`; test worlds are kept only as numbers (never look at a test world to fix it).
 """
 
 from __future__ import annotations
@@ -54,6 +56,8 @@ from typing import Any, Final
 
 import numpy as np
 import numpy.typing as npt
+
+from service.cli import DEFAULT_FRONT_END  # the core's, without importing it
 
 log = logging.getLogger(__name__)
 
@@ -431,7 +435,7 @@ def run_world(
     loop_closure: bool = False,
     odometry: bool = False,
     timeout_s: float = 1800.0,
-    front_end: str = "manhattan",
+    front_end: str = DEFAULT_FRONT_END,
 ) -> dict[str, Any]:
     """Generate, write, map with the CLI in a subprocess, score; one world."""
     from sensor_agent.sim.families import generate
@@ -512,6 +516,7 @@ def summarise(
     set_name: str,
     loop_closure: bool,
     odometry: bool = False,
+    front_end: str = DEFAULT_FRONT_END,
 ) -> str:
     """The Markdown tables and verdicts of one benchmark run."""
     for r in results:
@@ -578,13 +583,17 @@ def summarise(
             f"- {len(failed)} world(s) failed to map: "
             + "; ".join(f"{r['name']}: {r['error'][:120]}" for r in failed)
         )
-    mode = ("loop closure on" if loop_closure else "front end alone") + (
-        ", with odometry" if odometry else ""
+    mode = (
+        f"`{front_end}`, "
+        + ("loop closure on" if loop_closure else "front end alone")
+        + (", with odometry" if odometry else "")
     )
+    other_front_end = "" if front_end == DEFAULT_FRONT_END else f" --front-end {front_end}"
     command = (
         f"python -m bench.worlds run --set {set_name}"
         + (" --loop-closure" if loop_closure else "")
         + (" --odom" if odometry else "")
+        + other_front_end
     )
     parts = [
         f"### {set_name.capitalize()} set, {mode} ({len(results)} worlds)",
@@ -592,7 +601,7 @@ def summarise(
         (
             f"`{command}`: each world written as MCAP and mapped by `mapping-service map INPUT "
             f"--out DIR{'' if odometry else ' --no-odom'}"
-            f"{'' if loop_closure else ' --no-loop-closure'}` in a "
+            f"{'' if loop_closure else ' --no-loop-closure'}{other_front_end}` in a "
             "subprocess. Cells: median / 90th percentile / worst over the worlds. NEES / 3 is "
             "each world's mean NEES of the motion since the latest keyframe, over its dimension "
             "(1 = honest covariance)."
@@ -630,7 +639,7 @@ def run_set(
     loop_closure: bool,
     odometry: bool = False,
     progress: bool = True,
-    front_end: str = "manhattan",
+    front_end: str = DEFAULT_FRONT_END,
 ) -> tuple[list[dict[str, Any]], str]:
     from tqdm import tqdm
 
@@ -682,7 +691,13 @@ def run_set(
                 bar.set_postfix_str(f"{r['name']} gap {r['loop_gap_m']:.2f} m")
         bar.close()
     results.sort(key=lambda r: (r["family"], r["seed"]))
-    markdown = summarise(results, set_name=set_name, loop_closure=loop_closure, odometry=odometry)
+    markdown = summarise(
+        results,
+        set_name=set_name,
+        loop_closure=loop_closure,
+        odometry=odometry,
+        front_end=front_end,
+    )
     wall = time.perf_counter() - start
     try:
         load = os.getloadavg()
@@ -702,9 +717,10 @@ def run_set(
         "openblas_coretype": os.environ.get("OPENBLAS_CORETYPE"),
         "worlds": results,
     }
-    # With odometry the files carry "-odom": `write_doc`'s sets are the no-odometry runs.
+    # With odometry the files carry "-odom": `write_doc`'s sets are the no-odometry runs; any
+    # front end but the default names itself (`test-manhattan.json`: the older cascade).
     suffix = ("-loop-closure" if loop_closure else "") + ("-odom" if odometry else "")
-    suffix += "" if front_end == "manhattan" else f"-{front_end}"
+    suffix += "" if front_end == DEFAULT_FRONT_END else f"-{front_end}"
     (out_dir / f"{set_name}{suffix}.json").write_text(json.dumps(_finite(payload), indent=2) + "\n")
     markdown += (
         f"\n_{len(results)} worlds in {wall:.0f} s with {jobs} job(s); load average at the end "
@@ -742,8 +758,14 @@ def write_doc(doc: Path, out_dir: Path) -> None:
         if md.exists() and js.exists():
             meta = json.loads(js.read_text())
             runs.append((md.read_text().strip(), meta))
+    # A run names its front end; one that does not predates the choice: the cascade's.
+    front_ends = sorted({m.get("front_end", "manhattan") for _, m in runs}) or [DEFAULT_FRONT_END]
+    named = " and ".join(
+        f"`{fe}`{' (the default)' if fe == DEFAULT_FRONT_END else ''}" for fe in front_ends
+    )
     loads = ", ".join(
-        f"{m['set']}{' (loop closure)' if m['loop_closure'] else ''}: load "
+        f"{m['set']}{' (loop closure)' if m['loop_closure'] else ''}: "
+        f"`{m.get('front_end', 'manhattan')}`, load "
         f"{m['load_average_end'][0]:.1f}, commit `{m.get('git_commit', git_commit())}`"
         for _, m in runs
     )
@@ -752,7 +774,8 @@ def write_doc(doc: Path, out_dir: Path) -> None:
         "## Generated buildings",
         "",
         (
-            "The front end on the building families of `sensor_agent/sim/families.py` "
+            f"The front end ({named}) on the building families of "
+            "`sensor_agent/sim/families.py` "
             "([docs/worlds.md](worlds.md)): the tuning set (seeds 0 and 1 of each of the six "
             "families, 12 worlds) and the held-out test set (24 worlds of 300-415 m: seeds "
             "1000-1002 of `manhattan`, 1000-1004 of `ring`, 1000-1003 of `long_corridor`, "
@@ -885,8 +908,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p_run.add_argument(
         "--front-end",
         choices=FRONT_ENDS,
-        default="manhattan",
-        help="the CLI's --front-end (default: %(default)s)",
+        default=DEFAULT_FRONT_END,
+        help="the CLI's --front-end (default: %(default)s; any other one suffixes the output "
+        "files' names with its name, e.g. test-manhattan.json)",
     )
     p_run.add_argument("--out", type=Path, default=DEFAULT_OUT, metavar="DIR")
     p_run.add_argument("--no-progress", action="store_true", help="no progress bar")

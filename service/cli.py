@@ -7,13 +7,16 @@ import importlib
 import logging
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Final
 
 from clients.keyexpr import DEFAULT_PREFIX
 
 log = logging.getLogger("mapping-service")
 
-FRONT_END_CHOICES = ("manhattan", "matcher", "paper")  # `service.core.slam.FRONT_ENDS`
+# `service.core.slam.FRONT_ENDS` and `DEFAULT_FRONT_END` (its first), spelt out so that the CLI
+# and the benchmarks start without importing the core (tests/service/test_offline_cli.py checks).
+FRONT_END_CHOICES = ("matcher", "manhattan", "paper")
+DEFAULT_FRONT_END: Final = "matcher"
 
 
 def _add_zenoh_args(p: argparse.ArgumentParser) -> None:
@@ -97,14 +100,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_map.add_argument(
         "--front-end",
-        # `service.core.slam.FRONT_ENDS`, spelt out so that the CLI starts without importing
-        # the core (tests/service/test_offline_cli.py checks that they are the same).
         choices=FRONT_END_CHOICES,
-        default="manhattan",
-        help="manhattan: the projection-histogram cascade; matcher: one scan-to-submap match "
-        "with the walls' heading as a prior (being measured; docs/estimator.md); paper: the "
-        "IROS 2010 method as stated, no odometry (docs/paper-frontend.md) "
-        "(default: %(default)s)",
+        default=DEFAULT_FRONT_END,
+        help="matcher: one scan-to-submap match with the walls' heading as a prior "
+        "(docs/matcher.md); manhattan: the older projection-histogram cascade "
+        "(docs/estimator.md); paper: the IROS 2010 method as stated, no odometry "
+        "(docs/paper-frontend.md) (default: %(default)s)",
     )
     p_map.add_argument(
         "--resolution", type=float, default=0.05, metavar="M", help="map cell size (default: 0.05)"
@@ -211,10 +212,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_serve.add_argument(
         "--front-end",
-        choices=("manhattan", "matcher"),
+        choices=("matcher", "manhattan"),
         default=None,
-        help="every session's front end, as `map --front-end` (or env MAPPING_FRONT_END; "
-        "default: manhattan)",
+        help="the front end of new sessions, as `map --front-end` (or env MAPPING_FRONT_END; "
+        "default: matcher); a session keeps the one it was created with",
     )
     p_serve.add_argument(
         "--foxglove-port",

@@ -39,6 +39,7 @@ from service.bridge import scan_to_laser
 from service.core.frontend.params import EstimatorParams
 from service.core.maps.grid import GridImage
 from service.core.slam import (
+    DEFAULT_FRONT_END,
     DEFAULT_INTEGRATE_EVERY,
     FrontEndName,
     LoopStats,
@@ -75,7 +76,7 @@ class MapRun:
     optimised: list[Pose2D] | None = None  # every scan's pose after loop closure (None: off)
     loops: LoopStats | None = None
     backend_s: float = 0.0  # the back end, all of it: nodes, submaps, loop search, optimisation
-    front_end: str = "manhattan"  # which front end (`--front-end`)
+    front_end: str = DEFAULT_FRONT_END  # which front end (`--front-end`)
     wall_families_deg: list[float] = field(default_factory=lambda: [0.0])  # the estimator's
 
     @property
@@ -104,7 +105,7 @@ def map_scans(
     on_estimate: Callable[[Scan, PoseEstimate], None] | None = None,
     loop_closure: bool = True,
     slam_params: SlamParams | None = None,
-    front_end: FrontEndName = "manhattan",
+    front_end: FrontEndName = DEFAULT_FRONT_END,
 ) -> MapRun:
     """Estimate a pose for every scan and build the occupancy map (`SlamSession`).
 
@@ -273,7 +274,7 @@ def build_report(
             "origin_m": [float(image.origin_x_m), float(image.origin_y_m)],
             "known_cells": int(np.count_nonzero(image.occupancy >= 0)),
         }
-    if params is not None:
+    if params is not None and run.front_end == "manhattan":  # the cascade's parameters only
         report["estimator_params"] = asdict(params)
     return report
 

@@ -62,6 +62,7 @@ from service.core.frontend.params import EstimatorParams
 from service.core.frontend.scan_matcher import warm_up
 from service.core.maps.grid import GridImage
 from service.core.slam import (
+    DEFAULT_FRONT_END,
     DEFAULT_INTEGRATE_EVERY,
     FrontEndName,
     SlamParams,
@@ -101,8 +102,10 @@ class Engine:
     (`SlamSession`, the one `mapping-service map` runs). Picklable by reference when its
     functions are module-level ones, as mapper processes need."""
 
-    # The front end by name (`service.core.slam.make_frontend`): "manhattan" or "matcher".
-    front_end: FrontEndName = "manhattan"
+    # The front end of new sessions by name (`service.core.slam.make_frontend`): "matcher"
+    # (the default) or "manhattan". A session keeps its own (`SessionMeta.front_end`): each
+    # mapper is made with the session's name, this one only when none is given.
+    front_end: FrontEndName = DEFAULT_FRONT_END
     # The back end (loop closure, pose graph) beside the front end, in a background thread
     # (service/app/backend.py); False: the front end and its map alone.
     loop_closure: bool = True
@@ -225,7 +228,8 @@ class Mapper(Protocol):
     def close(self) -> None: ...
 
 
-MapperFactory = Callable[[str, bool, float], Mapper]  # (session id, use_odometry, resolution_m)
+# (session id, use_odometry, resolution_m, front end): the session's settings (`SessionMeta`).
+MapperFactory = Callable[[str, bool, float, FrontEndName], Mapper]
 
 
 class LocalMapper:
@@ -233,8 +237,16 @@ class LocalMapper:
     process. The scan's front half runs here, at once; with `engine.loop_closure` its back
     half runs in the process's back-end thread (`LiveBackend`), else here too."""
 
-    def __init__(self, engine: Engine, use_odometry: bool, resolution_m: float) -> None:
+    def __init__(
+        self,
+        engine: Engine,
+        use_odometry: bool,
+        resolution_m: float,
+        front_end: FrontEndName | None = None,
+    ) -> None:
+        """`front_end`: the session's (None: `engine.front_end`)."""
         self._engine = engine
+        self._front_end: FrontEndName = front_end if front_end is not None else engine.front_end
         self._use_odometry = use_odometry
         self._resolution_m = resolution_m
         self._session = self._new_session()
@@ -252,7 +264,7 @@ class LocalMapper:
             frontend = engine.make_estimator(self._use_odometry)
         else:
             params = EstimatorParams(use_odometry=self._use_odometry)
-            frontend = make_frontend(engine.front_end, params, use_odometry=self._use_odometry)
+            frontend = make_frontend(self._front_end, params, use_odometry=self._use_odometry)
         return SlamSession(
             None,
             SlamParams(loop_closure=engine.loop_closure),
@@ -385,8 +397,10 @@ class LocalMapper:
 
 
 def local_mapper_factory(engine: Engine) -> MapperFactory:
-    def make(session_id: str, use_odometry: bool, resolution_m: float) -> Mapper:
-        return LocalMapper(engine, use_odometry, resolution_m)
+    def make(
+        session_id: str, use_odometry: bool, resolution_m: float, front_end: FrontEndName
+    ) -> Mapper:
+        return LocalMapper(engine, use_odometry, resolution_m, front_end)
 
     return make
 
@@ -869,7 +883,12 @@ class RemoteMapper:
     delegates = True  # can record the session's scans and poses itself (a lease)
 
     def __init__(
-        self, proc: MapperProcess, key: str, use_odometry: bool, resolution_m: float
+        self,
+        proc: MapperProcess,
+        key: str,
+        use_odometry: bool,
+        resolution_m: float,
+        front_end: FrontEndName,
     ) -> None:
         self._proc = proc
         self._key = key
@@ -879,7 +898,7 @@ class RemoteMapper:
         self.on_pushed: OnDone | None = None
         self.on_want: Callable[[], None] | None = None
         self.on_lost: Callable[[], None] | None = None
-        proc.call(0, "create", key, use_odometry, resolution_m)
+        proc.call(0, "create", key, use_odometry, resolution_m, front_end)
         self._generation = proc.generation
         proc.remotes[key] = self
 
@@ -1041,7 +1060,9 @@ class MapperPool:
         for proc in self._procs:
             proc.start()
 
-    def new_mapper(self, session_id: str, use_odometry: bool, resolution_m: float) -> Mapper:
+    def new_mapper(
+        self, session_id: str, use_odometry: bool, resolution_m: float, front_end: FrontEndName
+    ) -> Mapper:
         with self._lock:
             robot_id = self._robot_of.get(session_id) if self.ingests else None
             if robot_id is not None:
@@ -1050,7 +1071,7 @@ class MapperPool:
                 proc = min(self._procs, key=lambda p: p.mappers)
             proc.mappers += 1
         try:
-            return RemoteMapper(proc, session_id, use_odometry, resolution_m)
+            return RemoteMapper(proc, session_id, use_odometry, resolution_m, front_end)
         except BaseException:
             proc.mappers -= 1
             raise

@@ -74,10 +74,13 @@ from service.app.mapper import (
     make_pose,
 )
 from service.app.store import (
+    LEGACY_FRONT_END,
+    SESSION_FRONT_ENDS,
     DataDir,
     MapStore,
     SavedMapMeta,
     Segment,
+    SessionFrontEnd,
     SessionMeta,
     SessionState,
     SessionStore,
@@ -185,6 +188,7 @@ class MappingSession:
         self.created_ns = meta.created_ns
         self.resolution_m = meta.resolution_m
         self.use_odometry = meta.use_odometry
+        self.front_end: SessionFrontEnd = meta.front_end
         self.lock = threading.Lock()
         self._store = store
         self._make_mapper = make_mapper
@@ -224,7 +228,9 @@ class MappingSession:
         # itself (the browser streams: `PoseFanout.to_streams`).
         self.on_pose: Callable[[Pose], None] | None = None
         if not restoring:
-            self._mapper = make_mapper(meta.id, meta.use_odometry, meta.resolution_m)
+            self._mapper = make_mapper(
+                meta.id, meta.use_odometry, meta.resolution_m, meta.front_end
+            )
             self._attach(self._mapper)
 
     @classmethod
@@ -238,6 +244,7 @@ class MappingSession:
             state="stopped",
             resolution_m=0.05,
             use_odometry=True,
+            front_end=LEGACY_FRONT_END,  # never mapped into
         )
         session = cls(SessionStore(directory, meta, fsync_each=False), make_mapper)
         session._broken = True
@@ -545,7 +552,9 @@ class MappingSession:
     def _new_mapper(self) -> Mapper:
         if self._mapper is not None:
             self._mapper.close()
-        self._mapper = self._make_mapper(self.id, self.use_odometry, self.resolution_m)
+        self._mapper = self._make_mapper(
+            self.id, self.use_odometry, self.resolution_m, self.front_end
+        )
         self._attach(self._mapper)
         return self._mapper
 
@@ -1294,6 +1303,14 @@ class ScanRouter(Protocol):
     def deactivate(self, robot_id: str, session_id: str) -> None: ...
 
 
+def _session_front_end(name: str) -> SessionFrontEnd:
+    """`name` as a session's front end (the live service has no "paper": offline only)."""
+    for front_end in SESSION_FRONT_ENDS:
+        if name == front_end:
+            return front_end
+    raise ValueError(f"front end {name!r} cannot run a live session")
+
+
 class SessionManager:
     """All sessions of this service; the index robot -> active session."""
 
@@ -1316,7 +1333,10 @@ class SessionManager:
         self._data = data
         self._maps = maps
         self._fsync_each = fsync_each
-        self._make_mapper = make_mapper or local_mapper_factory(engine or Engine())
+        engine = engine or Engine()
+        self._make_mapper = make_mapper or local_mapper_factory(engine)
+        # New sessions' front end (each keeps its own: `SessionMeta.front_end`).
+        self._front_end = _session_front_end(engine.front_end)
         self._render = render_map_files
         self._lock = threading.Lock()
         self._sessions: dict[str, MappingSession] = {}
@@ -1422,6 +1442,7 @@ class SessionManager:
                 state="active",
                 resolution_m=resolution_m,
                 use_odometry=use_odometry,
+                front_end=self._front_end,
             )
             if self._router is not None:
                 self._router.place(meta.id, robot_id)

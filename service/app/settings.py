@@ -110,10 +110,12 @@ class IngestSettings(_Frozen):
     # The back end (loop search, pose graph) beside every session's front end, in a background
     # thread of the process that runs the estimator (docs/backend.md, "Live").
     loop_closure: bool = Field(default=True, description="close loops (False: the front end alone)")
-    # The front end of every session's core (`service.core.slam.make_frontend`), as
-    # `mapping-service map --front-end`.
-    front_end: Literal["manhattan", "matcher"] = Field(
-        default="manhattan", description="front end: manhattan (default) or matcher"
+    # The front end of every new session's core (`service.core.slam.make_frontend`), as
+    # `mapping-service map --front-end`. A session keeps the one it was created with (its
+    # `session.json`), so a restart with another setting restores it as it was.
+    front_end: Literal["matcher", "manhattan"] = Field(
+        default="matcher",
+        description="front end of new sessions: matcher (default) or manhattan (the older cascade)",
     )
     # With mapper processes: each process subscribes to its share of the scan keys itself and
     # runs the whole per-scan path (decode, validate, record, map, publish); the service's

@@ -48,6 +48,13 @@ from service.app.errors import NotFoundError, StoreError
 log = logging.getLogger(__name__)
 
 META_FORMAT: Final = 1
+# The front ends a session can be created with (`service.core.slam.FRONT_ENDS` less the
+# offline-only "paper"), as `session.json` names them.
+SessionFrontEnd = Literal["matcher", "manhattan"]
+SESSION_FRONT_ENDS: Final[tuple[SessionFrontEnd, ...]] = ("matcher", "manhattan")
+# The front end of a `session.json` that names none: one written before sessions recorded theirs,
+# when every session's was the service's setting, by default "manhattan".
+LEGACY_FRONT_END: Final[SessionFrontEnd] = "manhattan"
 MAP_FILES: Final = ("map.png", "map.pgm", "map.yaml")
 _SEGMENT_FILE = re.compile(r"^epoch-(\d{6})(?:\.(\d{6}))?(\.poses)?\.mrec$")
 _CHECKPOINT_FILE = re.compile(r"^checkpoint-(\d{6})\.(\d{6})\.mck$")
@@ -131,6 +138,9 @@ class SessionMeta:
     state: SessionState
     resolution_m: float
     use_odometry: bool
+    # The front end its core runs (`service.core.slam.make_frontend`): the service's setting
+    # when the session was created; a restart under another setting keeps it.
+    front_end: SessionFrontEnd
     epoch: int = 0
     format: int = META_FORMAT
 
@@ -142,6 +152,9 @@ class SessionMeta:
         obj: Any = json.loads(data)
         if not isinstance(obj, dict) or obj.get("format") != META_FORMAT:
             raise StoreError("session.json has an unknown format")
+        front_end = obj.get("front_end", LEGACY_FRONT_END)
+        if front_end not in SESSION_FRONT_ENDS:
+            raise StoreError(f"session.json names an unknown front end {front_end!r}")
         meta = cls(
             id=str(obj["id"]),
             robot_id=str(obj["robot_id"]),
@@ -149,6 +162,7 @@ class SessionMeta:
             state="active" if obj["state"] == "active" else "stopped",
             resolution_m=float(obj["resolution_m"]),
             use_odometry=bool(obj["use_odometry"]),
+            front_end=front_end,
             epoch=int(obj["epoch"]),
         )
         if SESSION_ID_PATTERN.fullmatch(meta.id) is None:

@@ -1,6 +1,6 @@
 """One session's SLAM: the front end tracks every scan, the back end closes loops over nodes.
 
-    scan ─▶ front end (ManhattanEstimator) ─▶ pose + covariance, published at once
+    scan ─▶ front end (`make_frontend`) ─▶ pose + covariance, published at once
                  │ keyframe
                  ▼
             node ─▶ submaps (frozen local point fields)
@@ -323,8 +323,10 @@ class SlamBackend:
         return self.graph.estimate(node).compose(self.node_frontend[node].inverse())
 
 
-FrontEndName = Literal["manhattan", "matcher", "paper"]
-FRONT_ENDS: tuple[FrontEndName, ...] = ("manhattan", "matcher", "paper")
+FrontEndName = Literal["matcher", "manhattan", "paper"]
+# The default first (`mapping-service map --front-end`, the service's `front_end` setting).
+FRONT_ENDS: tuple[FrontEndName, ...] = ("matcher", "manhattan", "paper")
+DEFAULT_FRONT_END: FrontEndName = FRONT_ENDS[0]
 
 
 class Tracker(Protocol):
@@ -345,8 +347,9 @@ class FrontEnd(Tracker, Protocol):
 def make_frontend(
     name: FrontEndName, estimator_params: EstimatorParams | None = None, use_odometry: bool = True
 ) -> FrontEnd:
-    """The named front end: "manhattan" (the projection cascade) or "matcher" (one
-    scan-to-submap match, `frontend.scan_matcher`)."""
+    """The named front end: "matcher" (one scan-to-submap match, `frontend.scan_matcher`: the
+    default, `DEFAULT_FRONT_END`), "manhattan" (the older projection cascade, which alone reads
+    `estimator_params`) or "paper" (offline only)."""
     if name == "matcher":
         return ScanMatcherFrontEnd(MatcherParams(use_odometry=use_odometry))
     if name == "manhattan":
@@ -382,7 +385,10 @@ class SlamSession:
     final search and batch optimisation and returns every scan's corrected pose.
 
     `map_resolution_m` None: no map (the back end alone, as benchmarks use it);
-    `keep_trajectory` False: no per-scan record (the live service records its poses itself).
+    `keep_trajectory` False: no per-scan record (the live service records its poses itself);
+    `frontend` None: the cascade (`ManhattanEstimator(estimator_params)`), as the back end's
+    tests and benchmarks use it; the service and `mapping-service map` pass theirs by name
+    (`make_frontend`, the matcher by default).
     """
 
     def __init__(

@@ -207,9 +207,14 @@ def test_doc_section_is_one_keep_block_replaced_in_place(tmp_path: Path) -> None
     assert "### Test set, front end alone" in first
     assert "commit `abc`" in first
     assert "<!-- keep:other -->" in first
+    # A run that names no front end predates the choice: the cascade's, not the default's.
+    assert "The front end (`manhattan`) on" in first
+    assert "test: `manhattan`, load 3.0" in first
     (out / "test.md").write_text("### Test set, front end alone\n\n| new table |")
+    (out / "test.json").write_text(json.dumps(meta | {"front_end": "matcher"}))
     write_doc(doc, out)
     second = doc.read_text()
+    assert "The front end (`matcher` (the default)) on" in second
     assert second.count("<!-- keep:worlds -->") == 1
     assert "| new table |" in second
     assert "| table |" not in second

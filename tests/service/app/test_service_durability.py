@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -202,6 +203,67 @@ def test_restart_from_checkpoint_replays_only_the_tail(
         path.write_bytes(b"not a checkpoint")
     assert_same_session_data(expected, runtime_factory(crash).sessions.get(session.id))
     assert len(estimated) == 25
+
+
+@MAPPERS
+def test_a_session_keeps_its_front_end_when_the_setting_changes(
+    tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch, mappers: int
+) -> None:
+    """A session runs the front end it was created with (its `session.json`): a restart with
+    another `front_end` setting restores its checkpoint with that one (not rejected, nothing
+    re-estimated); new sessions take the setting. A `session.json` naming none was written
+    before sessions kept theirs, when every session ran the default then, the cascade: it
+    restores as `manhattan`, not as today's default."""
+    monkeypatch.setattr(MappingSession, "checkpoint_every_scans", 10)
+    data = tmp_path / "data"
+    first = runtime_factory(data, mapper_processes=mappers, front_end="manhattan")
+    session = first.sessions.create("r1", 0.05, True)
+    assert session.front_end == "manhattan"
+    robot = SimRobot("r1")
+    feed(first, robot, 20)  # checkpoints at scans 10 and 20
+    expected = seen(session)
+    first.close()
+    meta_path = data / "sessions" / session.id / "session.json"
+    assert json.loads(meta_path.read_bytes())["front_end"] == "manhattan"
+
+    estimated: list[str] = []  # the sessions of the scans re-estimated
+    original = MappingSession._estimate
+
+    def counting(self: MappingSession, scan: Scan) -> Pose | None:
+        estimated.append(self.id)
+        return original(self, scan)
+
+    monkeypatch.setattr(MappingSession, "_estimate", counting)
+
+    def assert_restored_as_manhattan(restored: MappingSession) -> None:
+        assert restored.front_end == "manhattan"
+        assert restored.status == "ok", restored.damage  # the checkpoint restored
+        assert restored.damage.checkpoints_rejected == 0
+        assert session.id not in estimated  # nothing after the checkpoint to re-estimate
+        assert_same_session_data(expected, restored)
+        if not mappers:
+            frontend = restored._mapper._session.frontend  # type: ignore[union-attr]
+            assert type(frontend).__name__ == "ManhattanEstimator"
+
+    second = runtime_factory(data, mapper_processes=mappers)  # the default front end
+    assert_restored_as_manhattan(second.sessions.get(session.id))
+    other = second.sessions.create("r2", 0.05, True)
+    assert other.front_end == "matcher"
+    feed(second, SimRobot("r2"), 5)
+    other_seen = seen(other)
+    second.close()  # checkpoints r2's 5 scans
+    other_meta = data / "sessions" / other.id / "session.json"
+    assert json.loads(other_meta.read_bytes())["front_end"] == "matcher"
+
+    legacy = json.loads(meta_path.read_bytes())
+    del legacy["front_end"]
+    meta_path.write_text(json.dumps(legacy))
+    third = runtime_factory(data, mapper_processes=mappers)
+    assert_restored_as_manhattan(third.sessions.get(session.id))
+    restored_other = third.sessions.get(other.id)
+    assert restored_other.front_end == "matcher"
+    assert restored_other.status == "ok", restored_other.damage
+    assert_same_session_data(other_seen, restored_other)
 
 
 @MAPPERS

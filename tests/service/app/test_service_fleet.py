@@ -62,11 +62,14 @@ class Tolerance:
 
 
 # Scans on a simulated 40 Hz clock, taken in lockstep (deterministic: the same figures in every
-# run). Measured over robots ra, rb, rc (2.08 m each): distance -0.08 .. +0.12 %, end point
-# 1.5-3.3 mm, ATE RMS 2.2-3.2 mm, ATE worst 4.4-7.1 mm, heading 0.014-0.030°. Bounds: about
-# three times the worst, for other machines' floating point and future estimator changes.
+# run). Measured over robots ra, rb, rc (2.08 m each) with the default front end, the matcher:
+# distance -0.23 .. +0.11 %, end point 3.6-10.7 mm, ATE RMS 6.5-10.5 mm, ATE worst 8.7-12.8 mm,
+# heading 0.025-0.058° (the older cascade, `--front-end manhattan`, on the same scans: distance
+# -0.08 .. +0.12 %, end point 1.5-3.3 mm, ATE RMS 2.2-3.2 mm, worst 4.4-7.1 mm, heading
+# 0.014-0.030°). Bounds: about three times the worst, for other machines' floating point and
+# future estimator changes.
 LOCKSTEP = Tolerance(
-    distance_rel=0.01, end_error_m=0.01, ate_rms_m=0.01, ate_max_m=0.02, heading_deg=0.1
+    distance_rel=0.01, end_error_m=0.03, ate_rms_m=0.03, ate_max_m=0.04, heading_deg=0.2
 )
 # The demo's agent path: stamps are the agent's wall clock when it read each scan, so load on
 # this machine shifts them against the emulator's scene time (0.7 m/s x the jitter), and the

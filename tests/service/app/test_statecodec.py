@@ -58,21 +58,24 @@ def test_front_end_alone_round_trips_its_grid() -> None:
     np.testing.assert_array_equal(a.snapshot().occupancy, b.snapshot().occupancy)
 
 
-def test_the_matcher_front_end_round_trips_too() -> None:
-    """The live service's front end chosen by name (`Engine.front_end`), as the command line's."""
+def test_the_manhattan_front_end_round_trips_too() -> None:
+    """The older front end chosen by name (the session's, else `Engine.front_end`), as the
+    command line's; a checkpoint of one front end never restores into the other."""
     robot = SimRobot("r1")
     scans = [robot.next_scan() for _ in range(80)]
-    a = LocalMapper(Engine(front_end="matcher", loop_closure=False), True, 0.05)
+    a = LocalMapper(Engine(loop_closure=False), True, 0.05, "manhattan")
     for scan in scans[:50]:
         a.map_scan(scan)
-    b = LocalMapper(Engine(front_end="matcher", loop_closure=False), True, 0.05)
+    b = LocalMapper(Engine(front_end="manhattan", loop_closure=False), True, 0.05)
     b.restore(a.state())
     for scan in scans[50:]:
         assert a.map_scan(scan) == b.map_scan(scan)
     np.testing.assert_array_equal(a.snapshot().occupancy, b.snapshot().occupancy)
-    manhattan = LocalMapper(Engine(loop_closure=False), True, 0.05)
+    matcher = LocalMapper(Engine(loop_closure=False), True, 0.05)  # the default
     with pytest.raises(statecodec.StateCodecError, match="another front end"):
-        manhattan.restore(a.state())
+        matcher.restore(a.state())
+    with pytest.raises(statecodec.StateCodecError, match="another front end"):
+        a.restore(matcher.state())
 
 
 @pytest.mark.parametrize(
