@@ -16,7 +16,7 @@ from scenes import CORRIDOR, ROOM, bad_scan, grid_of, matched_points, scan_of, w
 from clients.wire import PoseFlag
 from service.core.frontend import kernels
 from service.core.frontend.likelihood import LikelihoodGrid
-from service.core.frontend.matcher import MatchOptions, Priors, match
+from service.core.frontend.matcher import MatchOptions, Priors, match, refine
 from service.core.frontend.scan_matcher import (
     STATE_VERSION,
     MatcherParams,
@@ -24,7 +24,14 @@ from service.core.frontend.scan_matcher import (
     surface_in_map,
     warm_up,
 )
-from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
+from service.core.frontend.walls import (
+    WallMeasurement,
+    WallOptions,
+    WallState,
+    heading_prior,
+    measure,
+    observe,
+)
 from service.core.types import Pose2D, rotate_points
 
 pytestmark = pytest.mark.timeout(120)
@@ -95,6 +102,25 @@ def test_a_prediction_far_off_is_recovered_by_the_broad_component() -> None:
     assert abs(math.degrees(never.pose.theta_rad - truth.theta_rad)) > 10.0
 
 
+def test_a_scan_the_submap_half_explains_is_not_relocalised() -> None:
+    """Walls the submap never saw (a partition put up since) hide half the room: the match at
+    the truth costs more than `broad_cost`, so the broad window is searched too, but it wins
+    only where it costs `broad_cost` less, and here it does not: the pose is kept, within 2 cm
+    and 0.2° (measured: 289, 1.1 cm, 0.06°)."""
+    rng = np.random.default_rng(9)
+    truth = Pose2D(3.0, 2.5, 0.3)
+    grid = grid_of([(scan_of(ROOM, truth, rng), truth)])
+    partition = [[1.5, 1.0, 1.5, 4.5], [4.5, 1.0, 4.5, 4.5], [1.5, 4.0, 4.5, 4.0]]
+    world = world_of(ROOM.segments_m.tolist() + partition, 60.0, 60.0)
+    pts = matched_points(scan_of(world, truth, rng))
+    cov = np.diag([0.05**2, 0.05**2, math.radians(2.0) ** 2])
+    result = match(grid, pts, Priors(truth, cov), MatchOptions())
+    assert result.cost > MatchOptions().broad_cost
+    assert not result.broad
+    assert math.hypot(result.pose.x_m - truth.x_m, result.pose.y_m - truth.y_m) < 0.02
+    assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.2
+
+
 def test_a_plain_corridor_gives_a_covariance_long_along_it() -> None:
     """No structure along the corridor: the scan's information there is nil, so the posterior
     along it is the prior's, at least 10 times the σ across it. (The submap holds ten scans,
@@ -130,6 +156,58 @@ def test_a_wall_prior_two_degrees_off_is_outvoted_by_the_match() -> None:
     # Outvoted: the heading stays within 15 % of the prior's error of the truth (obeyed, it
     # would be 2°; blended as two Gaussians of these σ, about 0.15°).
     assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.3
+
+
+def test_a_wall_prior_far_off_pulls_no_harder_than_its_huber_cost() -> None:
+    """A walls' prior 10° off at σ = 1° (10 σ: its linear, Huber part) is outvoted, and the
+    match ends at the objective's minimum: no heading 0.02° or 0.05° either side costs less
+    (measured: 0.27° off the truth, every neighbour 0.004 or more above; a prior pulling as if
+    quadratic there leaves it 0.54° off, 0.55 above a neighbour)."""
+    rng = np.random.default_rng(3)
+    truth = Pose2D(3.0, 2.5, math.radians(5.0))
+    keyframe = Pose2D(3.2, 2.4, math.radians(4.0))
+    grid = grid_of([(scan_of(ROOM, keyframe, rng), keyframe)])
+    pts = matched_points(scan_of(ROOM, truth, rng))
+    cov = np.diag([0.1**2, 0.1**2, math.radians(3.0) ** 2])
+    priors = Priors(truth, cov, truth.theta_rad + math.radians(10.0), math.radians(1.0))
+    result = match(grid, pts, priors, MatchOptions())
+    assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.4
+    at = MatchOptions(refine_iterations=0)  # the objective at the start pose
+
+    def cost(d_deg: float) -> float:
+        p = result.pose
+        start = Pose2D(p.x_m, p.y_m, p.theta_rad + math.radians(d_deg))
+        return refine(grid, pts, start, priors, at)[4]
+
+    here = cost(0.0)
+    for d_deg in (-0.05, -0.02, 0.02, 0.05):
+        assert cost(d_deg) > here - 0.05, d_deg
+
+
+def test_the_walls_say_the_family_member_nearest_the_prediction() -> None:
+    """Family at 0°, walls seen 1° off the axes (α): a scan predicted at 88° is told 91° (the
+    member nearest 88°, not the one at 1°), at -88° it is told -91°, at 3° it is told 1°; a
+    scan whose α fits no family (9° off it) is told nothing."""
+    opts = WallOptions()
+    state = WallState([0.0], [1])
+    for predicted_deg, alpha_deg, want_deg in ((88.0, 1.0, 91.0), (-88.0, -1.0, -91.0), (3, 1, 1)):
+        meas = WallMeasurement(math.radians(alpha_deg), 1.0)
+        wall_rad, _ = heading_prior(state, meas, math.radians(predicted_deg), opts)
+        assert wall_rad is not None
+        assert math.degrees(wall_rad) == pytest.approx(want_deg, abs=1e-9)
+    far = WallMeasurement(math.radians(9.0), 1.0)
+    assert heading_prior(state, far, 0.0, opts) == (None, math.inf)
+
+
+@pytest.mark.parametrize(("weight", "sigma_deg"), [(1.0, 1.0), (0.25, 2.0), (0.04, 5.0)])
+def test_the_wall_priors_sigma_grows_as_the_walls_are_less_decisive(
+    weight: float, sigma_deg: float
+) -> None:
+    """σ = `sigma_deg` / √(decisiveness): 1° for a fully decisive histogram, 2° at a quarter."""
+    state = WallState([0.0], [1])
+    meas = WallMeasurement(0.0, weight)
+    _, sigma_rad = heading_prior(state, meas, 0.0, WallOptions())
+    assert math.degrees(sigma_rad) == pytest.approx(sigma_deg, rel=1e-9)
 
 
 def _wing_scan(angle_deg: float, rng: np.random.Generator) -> np.ndarray:

@@ -12,9 +12,24 @@ from scenes import PARAMS, grid_of, matched_points, scan_of, world_of
 
 from sensor_agent.sim.world import World
 from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
-from service.core.frontend.matcher import MatchOptions, Priors, _brute_force_search, search
+from service.core.frontend.matcher import (
+    MatchOptions,
+    Priors,
+    _brute_force_search,
+    _scored_points,
+    _window,
+    search,
+)
 from service.core.frontend.scan_matcher import surface_in_map
-from service.core.frontend.search import MAX_LEVEL, CostPyramid, build_pyramid, pyramid_of
+from service.core.frontend.search import (
+    _SLACK,
+    MAX_LEVEL,
+    CostPyramid,
+    Lattice,
+    _Problem,
+    build_pyramid,
+    pyramid_of,
+)
 from service.core.types import Pose2D
 
 pytestmark = pytest.mark.timeout(120)
@@ -97,6 +112,73 @@ def test_the_same_optimum_off_the_grid_edge(dx_m: float) -> None:
     for wall in (None, 0.21):
         pr = Priors(p, priors.cov_pred, wall, math.radians(1.0) if wall else math.inf)
         assert search(grid, pts, pr, opts)[0] == _brute_force_search(grid, pts, pr, opts)[0]
+
+
+def test_the_search_reaches_the_edge_of_its_window() -> None:
+    """The window is ±3σ of the prediction rounded up to whole cells: with σ = 9.5 cm, six
+    cells (30 cm) each way. A scan whose truth is six cells off in x and in y (and in -x, -y)
+    is found there, on the lattice, exactly; a window a cell short would stop 5 cm away."""
+    rng = np.random.default_rng(12)
+    world = _world(rng)
+    truth = Pose2D(6.0, 4.5, 0.4)
+    scan = scan_of(world, truth, rng)
+    grid = grid_of([(scan, truth)])
+    pts = matched_points(scan)
+    cov = np.diag([0.095**2, 0.095**2, math.radians(2.0) ** 2])
+    for sx, sy in ((1, 1), (-1, -1), (1, -1)):
+        predicted = Pose2D(truth.x_m + sx * 0.30, truth.y_m + sy * 0.30, truth.theta_rad)
+        got, _ = search(grid, pts, Priors(predicted, cov), MatchOptions())
+        assert abs(got.x_m - truth.x_m) < 1e-6
+        assert abs(got.y_m - truth.y_m) < 1e-6
+        assert abs(got.theta_rad - truth.theta_rad) < 1e-9
+
+
+def _problem(seed: int, wall_off_rad: float | None, wall_sigma_rad: float) -> _Problem:
+    """The search's problem (`matcher.search`'s lattice) of a random case, with a walls' prior
+    `wall_off_rad` from the prediction (None: none)."""
+    grid, pts, priors, opts = _random_case(seed)
+    p = priors.predicted
+    wall = None if wall_off_rad is None else p.theta_rad + wall_off_rad
+    pr = Priors(p, priors.cov_pred, wall, wall_sigma_rad if wall is not None else math.inf)
+    pts = _scored_points(pts, opts)
+    thetas, ny, nx = _window(grid, pts, pr, opts)
+    lattice = Lattice(
+        thetas, ny, nx, (p.x_m, p.y_m), p.theta_rad, np.linalg.inv(pr.cov_pred),
+        opts.scan_weight, pr.wall_heading_rad, pr.wall_sigma_rad, opts.wall_huber,
+    )  # fmt: skip
+    costs = grid.residual_costs(opts.max_residual_sigmas)
+    return _Problem(grid, pyramid_of(grid, costs, CAP), pts, lattice)
+
+
+@pytest.mark.parametrize(("wall_off_rad", "wall_sigma_rad"), [(None, 0.0), (0.03, 0.002)])
+def test_a_blocks_bound_is_below_every_pose_in_it(
+    wall_off_rad: float | None, wall_sigma_rad: float
+) -> None:
+    """What branch and bound rests on: a block's bound is at most the exact cost of every pose
+    in it (up to the pruning slack), for blocks of every size anywhere on the lattice, with
+    correlated priors and with a tight walls' prior off the prediction (its Huber part)."""
+    checked = 0
+    for seed in range(8):
+        prob = _problem(seed, wall_off_rad, wall_sigma_rad)
+        rng = np.random.default_rng(seed)
+        for _ in range(40):
+            ka, d = int(rng.integers(0, 5)), int(rng.integers(0, 4))
+            k0 = int(rng.integers(0, prob.n_rot))
+            a0, b0 = int(rng.integers(0, prob.n_rows)), int(rng.integers(0, prob.n_cols))
+            one = np.ones(1, dtype=np.int64)
+            bound = float(prob.bound(k0 * one, a0 * one, b0 * one, ka, d)[0])
+            k1 = min(k0 + (1 << ka), prob.n_rot)
+            a1, b1 = min(a0 + (1 << d), prob.n_rows), min(b0 + (1 << d), prob.n_cols)
+            kk, aa, bb = (
+                g.ravel().astype(np.int64)
+                for g in np.meshgrid(
+                    np.arange(k0, k1), np.arange(a0, a1), np.arange(b0, b1), indexing="ij"
+                )
+            )
+            lowest = float(prob.exact(kk, aa, bb).min())
+            assert bound <= lowest + _SLACK * (1.0 + abs(lowest)), (seed, k0, a0, b0, ka, d)
+            checked += 1
+    assert checked == 320
 
 
 def test_an_empty_grid_returns_the_prediction() -> None:
