@@ -63,11 +63,6 @@ class MatchOptions:
     # refine stops; each halving is one more evaluation of the scan. 2 is 10 % faster per scan
     # but Intel's local rotation error grows (docs/matcher.md, "Speed"): 6 is kept.
     refine_halvings: int = 6
-    # The search is skipped where its whole window is within the refine's reach: one cell and
-    # this rotation (at 40 Hz the search's best pose was the prediction on nine scans of ten,
-    # and the refine from the prediction ends within microns of where it ends after a search).
-    refine_reach_m: float = 0.05
-    refine_reach_rad: float = math.radians(2.0)
     wall_huber: float = 2.0  # the wall prior's residual is linear beyond this many σ
     # The motion prior is a mixture: the prediction's Gaussian, or, at this cost (-2 ln of its
     # weight), anywhere in a broad window (stamps that lie, a stale scan, a kick). Searched
@@ -352,11 +347,7 @@ def _match_component(
     grid: LikelihoodGrid, points_xy_m: FloatArray, priors: Priors, opts: MatchOptions
 ) -> MatchResult:
     """Search, then refine, then read the weakest axis off the response."""
-    start, cells = (
-        (priors.predicted, 0)
-        if _within_refine_reach(priors, opts)
-        else search(grid, points_xy_m, priors, opts)
-    )
+    start, cells = search(grid, points_xy_m, priors, opts)
     pose, covariance, h_scan, score, cost = refine(grid, points_xy_m, start, priors, opts)
     shift_m, h_weak = weakest_axis_from_response(grid, points_xy_m, pose, priors, h_scan, opts=opts)
     if h_weak is not h_scan:
@@ -365,16 +356,6 @@ def _match_component(
         covariance = np.asarray(0.5 * (posterior + posterior.T), dtype=np.float64)
         h_scan = h_weak
     return MatchResult(pose, covariance, h_scan, score, cells, cost)
-
-
-def _within_refine_reach(priors: Priors, opts: MatchOptions) -> bool:
-    """Whether the search's window (±`search_sigmas` σ of the prediction) lies within the
-    refine's reach, so that the search could only confirm the prediction as the refine's start."""
-    sig = np.sqrt(np.maximum(np.diag(priors.cov_pred), 0.0))
-    return bool(
-        opts.search_sigmas * max(sig[0], sig[1]) <= opts.refine_reach_m
-        and opts.search_sigmas * sig[2] <= opts.refine_reach_rad
-    )
 
 
 def weakest_axis_from_response(

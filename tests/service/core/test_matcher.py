@@ -55,31 +55,6 @@ def test_a_shifted_scan_is_recovered_against_its_own_submap(
     assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.1
 
 
-def test_a_tight_prediction_is_refined_without_the_search() -> None:
-    """At 40 Hz the prediction's ±3σ window is within the refine's reach (one cell, 2°): the
-    search is skipped, and Gauss-Newton from the prediction ends where it ends after the search
-    (within 1 mm and 0.01°; the tight prior pulls both a little off the truth). A wider
-    prediction is searched."""
-    rng = np.random.default_rng(3)
-    truth = Pose2D(3.0, 2.5, 0.3)
-    scan = scan_of(ROOM, truth, rng)
-    grid = grid_of([(scan, truth)])
-    pts = matched_points(scan)
-    predicted = Pose2D(truth.x_m + 0.02, truth.y_m - 0.015, truth.theta_rad + math.radians(0.3))
-    tight = np.diag([0.015**2, 0.015**2, math.radians(0.3) ** 2])
-    refined = match(grid, pts, Priors(predicted, tight), MatchOptions())
-    searched = match(grid, pts, Priors(predicted, tight), MatchOptions(refine_reach_m=0.0))
-    assert refined.searched_cells == 0
-    assert searched.searched_cells > 0
-    assert (
-        math.hypot(refined.pose.x_m - searched.pose.x_m, refined.pose.y_m - searched.pose.y_m)
-        < 1e-3
-    )
-    assert abs(math.degrees(refined.pose.theta_rad - searched.pose.theta_rad)) < 0.01
-    assert math.hypot(refined.pose.x_m - truth.x_m, refined.pose.y_m - truth.y_m) < 0.02
-    assert match(grid, pts, Priors(predicted, tight * 4.0), MatchOptions()).searched_cells > 0
-
-
 def test_a_prediction_far_off_is_recovered_by_the_broad_component() -> None:
     """A stale scan or a lying stamp puts the prediction 40° and 0.4 m off with a tight σ: the
     narrow match cannot reach the truth, costs more than `broad_cost`, and the broad window
