@@ -282,28 +282,28 @@ MUTANTS: tuple[Mutant, ...] = (
     ),
     _r(
         "CRC not checked",
-        "        if zlib.crc32(payload) != crc:",
-        "        if False:",
+        "    if zlib.crc32(mm[start : start + length]) != crc:",
+        "    if False:",
     ),
     _r(
         "a CRC mismatch anywhere is taken for a torn tail",
-        "            if _bytes_left(f) == 0 or (_is_zero(payload) and _rest_is_zero(f)):",
-        "            if True:",
+        "        if size - pos < _RECORD_HEADER.size or _is_zero_from(mm, pos, size):",
+        "        if True:",
     ),
     _r(
         "an impossible length anywhere is taken for a torn tail",
-        "            if _bytes_left(f) < length or _rest_is_zero(f):",
+        "            if 0 < declared <= MAX_RECORD_BYTES and end > size:",
         "            if True:",
     ),
     _r(
         "magic not checked",
-        '        if f.read(len(MAGIC)) != MAGIC:\n            raise RecordingError(f"{path}: not a',
-        '        if f.read(len(MAGIC)) is None:\n            raise RecordingError(f"{path}: not a',
+        '        if f.read(len(MAGIC)) != MAGIC:\n            raise RecordingError(f"{Path(path).name}',
+        '        if f.read(len(MAGIC)) is None:\n            raise RecordingError(f"{Path(path).name}',
     ),
     _r(
         "valid_length forgets the record header",
-        "        end = record.offset + _RECORD_HEADER.size + len(record.payload)",
-        "        end = record.offset + len(record.payload)",
+        "            report.valid_end = pos\n",
+        "            report.valid_end = pos - _RECORD_HEADER.size\n",
     ),
     # -- the estimator's public steps ----------------------------------------------------------
     _e(
@@ -319,8 +319,8 @@ MUTANTS: tuple[Mutant, ...] = (
     ),
     _e(
         "first scan: map axes not the Manhattan angle",
-        "            pose = Pose2D(0.0, 0.0, meas.angle_rad)",
-        "            pose = Pose2D(0.0, 0.0, 0.0)",
+        "        pose = Pose2D(0.0, 0.0, heading.theta_rad)",
+        "        pose = Pose2D(0.0, 0.0, 0.0)",
     ),
     _e(
         "prediction: no constant-velocity motion",
@@ -349,7 +349,7 @@ MUTANTS: tuple[Mutant, ...] = (
     ),
     _e(
         "degeneracy: too few points not flagged",
-        "        if pts.shape[0] < p.min_points:",
+        "        if pts.shape[0] < self.params.min_points:",
         "        if pts.shape[0] < 0:",
     ),
     _e(
@@ -360,8 +360,8 @@ MUTANTS: tuple[Mutant, ...] = (
     ),
     _e(
         "quality: sharpness of the peaks ignored",
-        "        q = heading_quality * (0.5 + 0.25 * mx.sharpness + 0.25 * my.sharpness)",
-        "        q = heading_quality",
+        "        q = heading.quality * (0.5 + 0.25 * mx.sharpness + 0.25 * my.sharpness)",
+        "        q = heading.quality",
     ),
     _e(
         "velocity: smoothing weights swapped",

@@ -224,6 +224,20 @@ def test_length_past_the_end_of_the_file_is_a_torn_tail(tmp_path: Path) -> None:
     assert not report.damaged
 
 
+def test_an_impossible_length_in_the_last_record_is_damage_not_a_torn_tail(tmp_path: Path) -> None:
+    """A length no record can have, with nothing intact after it: damage, counted and kept for
+    inspection, not a write cut short by a crash (that one is a plausible length past the end)."""
+    path = tmp_path / "len.mrec"
+    offsets = write(path, messages(3))
+    data = bytearray(path.read_bytes())
+    data[offsets[2] : offsets[2] + 4] = struct.pack("<I", 0xFFFFFFFF)
+    path.write_bytes(bytes(data))
+    report = scan_file(path)
+    assert (report.records, report.records_lost, report.torn_tail_bytes) == (2, 1, 0)
+    assert report.damage[0].reason == "length"
+    assert report.damage[0].offset == offsets[2]
+
+
 @pytest.mark.parametrize(
     "content", [b"", b"MMREC02\n", b"not a recording at all", b"\x89PNG\r\n\x1a\n"]
 )
