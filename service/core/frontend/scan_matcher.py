@@ -309,6 +309,7 @@ class ScanMatcherFrontEnd:
         returns = scan.points_xy_m() if ranges.ndim == 1 and ranges.size else np.zeros((0, 2))
         pts = self._points(scan, returns)
         predicted, cov_pred, flags = self._predict(scan)
+        predicted_cov = cov_pred  # the prediction's own (cov_pred becomes the winning prior's)
         if pts.shape[0] < p.min_points:
             return self._degenerate(scan, predicted, cov_pred, flags)
         wall_meas = measure(pts, p.walls) if p.wall_prior else None
@@ -346,13 +347,8 @@ class ScanMatcherFrontEnd:
             )
         flags |= self._ambiguity(h_scan)
         learnt = PoseFlag.ODOMETRY_PRIOR | PoseFlag.RELOCALISED
-        odometry = self._odometry_prediction(scan)
-        if (
-            flags & learnt == PoseFlag.ODOMETRY_PRIOR
-            and odometry is not None
-            and self._pose is not None
-        ):
-            self._learn_odometry_noise(pose, *odometry)
+        if flags & learnt == PoseFlag.ODOMETRY_PRIOR and self._pose is not None:
+            self._learn_odometry_noise(pose, predicted, predicted_cov)  # odometry's prediction
         # The covariance relative to the latest keyframe: a Kalman step of the motion since it.
         prior_cov = self._cov_since_keyframe + cov_pred
         cov = np.linalg.inv(np.linalg.inv(prior_cov) + h_scan)
