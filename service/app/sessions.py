@@ -75,7 +75,6 @@ from service.app.mapper import (
 )
 from service.app.store import (
     LEGACY_FRONT_END,
-    SESSION_FRONT_ENDS,
     DataDir,
     MapStore,
     SavedMapMeta,
@@ -89,6 +88,7 @@ from service.app.store import (
     parse_segment,
     read_meta,
     read_repairs,
+    session_front_end,
     write_atomic,
 )
 
@@ -1303,14 +1303,6 @@ class ScanRouter(Protocol):
     def deactivate(self, robot_id: str, session_id: str) -> None: ...
 
 
-def _session_front_end(name: str) -> SessionFrontEnd:
-    """`name` as a session's front end (the live service has no "paper": offline only)."""
-    for front_end in SESSION_FRONT_ENDS:
-        if name == front_end:
-            return front_end
-    raise ValueError(f"front end {name!r} cannot run a live session")
-
-
 class SessionManager:
     """All sessions of this service; the index robot -> active session."""
 
@@ -1336,7 +1328,7 @@ class SessionManager:
         engine = engine or Engine()
         self._make_mapper = make_mapper or local_mapper_factory(engine)
         # New sessions' front end (each keeps its own: `SessionMeta.front_end`).
-        self._front_end = _session_front_end(engine.front_end)
+        self._front_end = session_front_end(engine.front_end)
         self._render = render_map_files
         self._lock = threading.Lock()
         self._sessions: dict[str, MappingSession] = {}

@@ -55,6 +55,17 @@ SESSION_FRONT_ENDS: Final[tuple[SessionFrontEnd, ...]] = ("matcher", "manhattan"
 # The front end of a `session.json` that names none: one written before sessions recorded theirs,
 # when every session's was the service's setting, by default "manhattan".
 LEGACY_FRONT_END: Final[SessionFrontEnd] = "manhattan"
+
+
+def session_front_end(name: object) -> SessionFrontEnd:
+    """`name` as a session's front end; ValueError for any other (the live service has no
+    "paper": offline only)."""
+    for front_end in SESSION_FRONT_ENDS:
+        if name == front_end:
+            return front_end
+    raise ValueError(f"front end {name!r} cannot run a live session")
+
+
 MAP_FILES: Final = ("map.png", "map.pgm", "map.yaml")
 _SEGMENT_FILE = re.compile(r"^epoch-(\d{6})(?:\.(\d{6}))?(\.poses)?\.mrec$")
 _CHECKPOINT_FILE = re.compile(r"^checkpoint-(\d{6})\.(\d{6})\.mck$")
@@ -152,9 +163,12 @@ class SessionMeta:
         obj: Any = json.loads(data)
         if not isinstance(obj, dict) or obj.get("format") != META_FORMAT:
             raise StoreError("session.json has an unknown format")
-        front_end = obj.get("front_end", LEGACY_FRONT_END)
-        if front_end not in SESSION_FRONT_ENDS:
-            raise StoreError(f"session.json names an unknown front end {front_end!r}")
+        try:
+            front_end = session_front_end(obj.get("front_end", LEGACY_FRONT_END))
+        except ValueError:
+            raise StoreError(
+                f"session.json names an unknown front end {obj['front_end']!r}"
+            ) from None
         meta = cls(
             id=str(obj["id"]),
             robot_id=str(obj["robot_id"]),
