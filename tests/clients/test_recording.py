@@ -70,6 +70,14 @@ def write(path: Path, items: list[Scan | Pose]) -> list[int]:
     return offsets
 
 
+def set_length(path: Path, offset: int, length: int) -> bytes:
+    """Overwrite the length field of the record at `offset`; return the file's new bytes."""
+    data = bytearray(path.read_bytes())
+    data[offset : offset + 4] = struct.pack("<I", length)
+    path.write_bytes(bytes(data))
+    return bytes(data)
+
+
 def test_round_trip(tmp_path: Path) -> None:
     path = tmp_path / "run.mrec"
     items = messages()
@@ -185,9 +193,7 @@ def test_damaged_length_is_resynchronised(tmp_path: Path, value: int) -> None:
     path = tmp_path / "len.mrec"
     items = messages(5)
     offsets = write(path, items)
-    data = bytearray(path.read_bytes())
-    data[offsets[1] : offsets[1] + 4] = struct.pack("<I", value)
-    path.write_bytes(bytes(data))
+    set_length(path, offsets[1], value)
     report = scan_file(path)
     assert list(read_messages(path)) == [items[0], *items[2:]]
     assert report.records == 4
@@ -215,9 +221,7 @@ def test_damage_in_the_last_record_is_reported_not_torn(tmp_path: Path) -> None:
 def test_length_past_the_end_of_the_file_is_a_torn_tail(tmp_path: Path) -> None:
     path = tmp_path / "len.mrec"
     offsets = write(path, messages(3))
-    data = bytearray(path.read_bytes())
-    data[offsets[2] : offsets[2] + 4] = struct.pack("<I", 1000)
-    path.write_bytes(bytes(data))
+    data = set_length(path, offsets[2], 1000)
     report = scan_file(path)
     assert [r.offset for r in iter_raw_records(path)] == offsets[:2]
     assert report.torn_tail_bytes == len(data) - offsets[2]
@@ -229,9 +233,7 @@ def test_an_impossible_length_in_the_last_record_is_damage_not_a_torn_tail(tmp_p
     inspection, not a write cut short by a crash (that one is a plausible length past the end)."""
     path = tmp_path / "len.mrec"
     offsets = write(path, messages(3))
-    data = bytearray(path.read_bytes())
-    data[offsets[2] : offsets[2] + 4] = struct.pack("<I", 0xFFFFFFFF)
-    path.write_bytes(bytes(data))
+    set_length(path, offsets[2], 0xFFFFFFFF)
     report = scan_file(path)
     assert (report.records, report.records_lost, report.torn_tail_bytes) == (2, 1, 0)
     assert report.damage[0].reason == "length"
