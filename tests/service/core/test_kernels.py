@@ -176,5 +176,5 @@ def test_hard_energies_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
         counts = np.bincount(idx.ravel(), minlength=2 * k * width)[: 2 * k * width]
         sq = np.einsum("ij,ij->i", *(counts.reshape(2 * k, width),) * 2)
         want = (sq[:k] + sq[k:]).astype(np.float64)
-        got = heading.heading_scores(points, angles, bin_m, "energy", soft=False)
+        got = heading.heading_scores(points, angles, bin_m, soft=False)
         assert np.array_equal(got, want)
