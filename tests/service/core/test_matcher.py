@@ -435,3 +435,21 @@ def test_warm_up_loads_every_compiled_kernel() -> None:
     for name in ("gauss_newton", "lattice_gather", "block_bounds", "carve"):
         assert getattr(kernels, name).signatures, name
     assert kernels.hard_energies.signatures
+
+
+def test_a_heading_the_match_corrects_does_not_turn_the_velocity() -> None:
+    """The velocity lives in the robot frame. A scan the match puts 1° off the heading the
+    velocity predicted (it predicted no turn) says where the robot faces, not that its motion
+    turned: the velocity keeps its direction in the map and its speed."""
+    fe = ScanMatcherFrontEnd(MatcherParams(use_odometry=False))
+    fe.process(scan_of(ROOM, Pose2D(1.5, 2.5, 0.0), np.random.default_rng(1)))
+    state = fe.state()
+    state.velocity = np.array([0.7, 0.0, 0.0])
+    state.velocity_cov = np.eye(3) * 1e-4
+    fe.__setstate__({"params": dataclasses.asdict(fe.params), "state": state})
+    corrected = Pose2D(0.07, 0.0, math.radians(1.0))  # 0.1 s on, facing 1° to the left
+    scan = scan_of(ROOM, Pose2D(1.57, 2.5, 0.0), np.random.default_rng(2), stamp_ns=100_000_000)
+    fe._update_motion(scan, corrected, np.eye(3) * 1e6, np.eye(3) * 1e-6)
+    vx, vy, _ = fe.state().velocity
+    assert math.hypot(vx, vy) == pytest.approx(0.7, abs=1e-12)
+    assert corrected.theta_rad + math.atan2(vy, vx) == pytest.approx(0.0, abs=1e-12)
