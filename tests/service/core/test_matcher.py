@@ -98,8 +98,8 @@ def test_a_scan_the_submap_half_explains_is_not_relocalised() -> None:
 
 def test_a_plain_corridor_gives_a_covariance_long_along_it() -> None:
     """No structure along the corridor: the scan's information there is nil, so the posterior
-    along it is the prior's (and no wider), at least 10 times the σ across it. (The submap holds ten scans,
-    as a submap does: one noisy scan alone draws wiggly walls.)"""
+    along it is the prior's (and no wider), at least 10 times the σ across it. (The submap
+    holds ten scans, as a submap does: one noisy scan alone draws wiggly walls.)"""
     rng = np.random.default_rng(2)
     poses = [Pose2D(-0.15 * k, 1.0 + 0.02 * (k % 3), 0.0) for k in range(10)]
     grid = grid_of([(scan_of(CORRIDOR, pose, rng), pose) for pose in poses])
