@@ -43,9 +43,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from service.core.frontend import kernels
-from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost, residual_sq
+from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
 from service.core.frontend.search import Lattice, lattice_search
-from service.core.types import FloatArray, Pose2D, rotate_points, wrap_angle
+from service.core.types import FloatArray, Pose2D, wrap_angle
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,21 +98,12 @@ class MatchResult:
     second: bool = False  # won by its second component (`Priors.second`)
 
 
-def _delta(pose: Pose2D, ref: Pose2D) -> FloatArray:
-    return np.array(
-        [pose.x_m - ref.x_m, pose.y_m - ref.y_m, wrap_angle(pose.theta_rad - ref.theta_rad)]
-    )
-
-
-def _wall_cost_weight(priors: Priors, theta_rad: float, huber: float) -> tuple[float, float, float]:
-    """(cost, residual in σ, IRLS weight) of the wall prior at `theta_rad`."""
+def _wall_cost(priors: Priors, theta_rad: float, huber: float) -> float:
+    """The wall prior's cost at `theta_rad`: Huber's, on the residual in σ."""
     if priors.wall_heading_rad is None or not math.isfinite(priors.wall_sigma_rad):
-        return 0.0, 0.0, 0.0
-    z = wrap_angle(theta_rad - priors.wall_heading_rad) / priors.wall_sigma_rad
-    a = abs(z)
-    if a <= huber:
-        return z * z, z, 1.0
-    return 2.0 * huber * a - huber * huber, z, huber / a
+        return 0.0
+    a = abs(wrap_angle(theta_rad - priors.wall_heading_rad) / priors.wall_sigma_rad)
+    return a * a if a <= huber else 2.0 * huber * a - huber * huber
 
 
 def _scored_points(points_xy_m: FloatArray, opts: MatchOptions) -> FloatArray:
@@ -229,7 +220,7 @@ def _brute_force_search(
             + 2.0 * info_pred[0, 2] * dx * dt
             + 2.0 * info_pred[1, 2] * dy * dt
         )
-        total = scan_cost + prior + _wall_cost_weight(priors, float(thetas[k]), opts.wall_huber)[0]
+        total = scan_cost + prior + _wall_cost(priors, float(thetas[k]), opts.wall_huber)
         flat = int(np.argmin(total))
         if total.flat[flat] < best[0]:
             a, b = divmod(flat, dj.shape[0])
@@ -242,69 +233,31 @@ def _brute_force_search(
     return best[1], int(thetas.shape[0] * di.shape[0] * dj.shape[0])
 
 
-def _scan_terms(
-    grid: LikelihoodGrid, pts: FloatArray, pose: Pose2D, opts: MatchOptions
-) -> tuple[float, FloatArray, FloatArray, float]:
-    """Scan cost, its gradient and Gauss-Newton Hessian at `pose` (halved), and the mean
-    field value."""
-    n = pts.shape[0]
-    c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-    # The field (bicubic) at the points placed at `pose` (`grid.interpolate`, compiled).
-    ox, oy = grid.origin_m
-    value, grad = kernels.interpolate(
-        grid.values, ox, oy, grid.resolution_m, pts, c, s, pose.x_m, pose.y_m
-    )
-    r_sq = residual_sq(value, opts.max_residual_sigmas)
-    # ∂(r²/2)/∂q = -∇M / M, exact; the Gauss-Newton Jacobian ∂r/∂q = -∇M / (M r) with r held
-    # off 0, where interpolation leaves ∇M and r not quite vanishing together; both by the
-    # chain rule in (x, y, θ). The sums stay numpy's (pairwise, BLAS): the same bits.
-    half_grad, j = kernels.scan_jacobians(value, grad, r_sq, pts, c, s, opts.max_residual_sigmas)
-    scale = opts.scan_weight / max(n, 1)
-    cost = scale * float(r_sq.sum())
-    g = scale * half_grad.sum(axis=0)
-    h = scale * (j.T @ j)
-    return cost, g, h, float(value.mean()) if n else 0.0
-
-
 def refine(
     grid: LikelihoodGrid, points_xy_m: FloatArray, start: Pose2D, priors: Priors, opts: MatchOptions
 ) -> tuple[Pose2D, FloatArray, FloatArray, float, float]:
-    """Gauss-Newton from `start`: (pose, posterior covariance, scan information, score, cost)."""
-    info_pred = np.linalg.inv(priors.cov_pred)
-    pose = start
-
-    def total(p: Pose2D) -> tuple[float, FloatArray, FloatArray, FloatArray, float]:
-        cost, g, h_scan, score = _scan_terms(grid, points_xy_m, p, opts)
-        d = _delta(p, priors.predicted)
-        wall_cost, z, wz = _wall_cost_weight(priors, p.theta_rad, opts.wall_huber)
-        cost += float(d @ info_pred @ d) + wall_cost
-        g = g + info_pred @ d
-        h = h_scan + info_pred
-        if wz > 0.0:
-            g[2] += wz * z / priors.wall_sigma_rad
-            h[2, 2] += wz / priors.wall_sigma_rad**2
-        return cost, g, h, h_scan, score
-
-    cost, g, h, h_scan, score = total(pose)
-    for _ in range(opts.refine_iterations):
-        step = -np.linalg.solve(h + 1e-9 * np.eye(3), g)
-        accepted = False
-        for _half in range(opts.refine_halvings):  # a step that raises the cost is halved
-            cand = Pose2D(
-                float(pose.x_m + step[0]),
-                float(pose.y_m + step[1]),
-                wrap_angle(float(pose.theta_rad + step[2])),
-            )
-            c2, g2, h2, hs2, s2 = total(cand)
-            if c2 <= cost:
-                pose, cost, g, h, h_scan, score = cand, c2, g2, h2, hs2, s2
-                accepted = True
-                break
-            step *= 0.5
-        if not accepted or (abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-6):
-            break
+    """Gauss-Newton from `start` (`kernels.gauss_newton`, compiled): (pose, posterior
+    covariance, scan information, score, cost). The objective: the scan's capped r² on the
+    bicubic field, weighted as `scan_weight` points, plus the motion prior's Mahalanobis term,
+    plus the walls' Huber term on θ."""
+    wall = priors.wall_heading_rad
+    ox, oy = grid.origin_m
+    pose, h, h_scan, score, cost = kernels.gauss_newton(
+        grid.values, ox, oy, grid.resolution_m, np.ascontiguousarray(points_xy_m, dtype=np.float64),
+        np.array([start.x_m, start.y_m, start.theta_rad]),
+        np.array([priors.predicted.x_m, priors.predicted.y_m, priors.predicted.theta_rad]),
+        np.ascontiguousarray(np.linalg.inv(priors.cov_pred), dtype=np.float64),
+        math.nan if wall is None else wall, priors.wall_sigma_rad, opts.wall_huber,
+        opts.scan_weight, opts.max_residual_sigmas, opts.refine_iterations, opts.refine_halvings,
+    )  # fmt: skip
     covariance = np.linalg.inv(h)
-    return pose, 0.5 * (covariance + covariance.T), h_scan, score, cost
+    return (
+        Pose2D(float(pose[0]), float(pose[1]), float(pose[2])),
+        0.5 * (covariance + covariance.T),
+        h_scan,
+        float(score),
+        float(cost),
+    )
 
 
 def match(
@@ -389,15 +342,12 @@ def weakest_axis_from_response(
     steps = math.ceil(half_m / res)
     offsets = res * np.arange(-steps, steps + 1, dtype=np.float64)
     pts = _scored_points(points_xy_m, opts)
-    costs = grid.residual_costs(opts.max_residual_sigmas)
-    rows_n, cols_n = costs.shape
-    q = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
-    cols = np.floor((q[None, :, 0] + offsets[:, None] * u[0] - grid.origin_m[0]) / res)
-    rows = np.floor((q[None, :, 1] + offsets[:, None] * u[1] - grid.origin_m[1]) / res)
-    inside = (rows >= 0) & (rows < rows_n) & (cols >= 0) & (cols < cols_n)
-    r = np.clip(rows, 0, rows_n - 1).astype(np.int64)
-    c = np.clip(cols, 0, cols_n - 1).astype(np.int64)
-    looked_up = np.where(inside, costs[r, c], off_surface_cost(opts.max_residual_sigmas))
+    looked_up = kernels.axis_lookup(
+        grid.residual_costs(opts.max_residual_sigmas), *grid.origin_m, res,
+        np.ascontiguousarray(pts), math.cos(pose.theta_rad), math.sin(pose.theta_rad),
+        pose.x_m, pose.y_m, float(u[0]), float(u[1]), offsets,
+        off_surface_cost(opts.max_residual_sigmas),
+    )  # fmt: skip
     scan_cost = opts.scan_weight * looked_up.mean(axis=1)
     weight = np.exp(-0.5 * (scan_cost - scan_cost.min()))
     weight /= weight.sum()

@@ -423,12 +423,16 @@ class ScanMatcherFrontEnd:
         a corridor the scan says nothing, so the velocity keeps its prediction there (a slipped
         match does not become a speed); and where a door pins the pose again after a plain
         stretch, the correction says where the robot is, not how fast it went (the anchor's
-        position along the corridor was loose)."""
+        position along the corridor was loose). A heading the match corrected, beyond the turn
+        the velocity predicted, says where the robot faces, not that its motion turned: the
+        velocity (robot frame) is turned back by the correction, so that its direction in the
+        map is kept."""
         p = self.params
         self._pose_cov = np.asarray(
             np.linalg.inv(np.linalg.inv(self._pose_cov + cov_pred) + h_scan), dtype=np.float64
         )
         anchor = self._velocity_anchor
+        turn_rate_rad_s = float(self._velocity[2])  # what the prediction turned by
         gap_s = 0.0 if self._stamp_ns is None else (scan.stamp_ns - self._stamp_ns) * 1e-9
         if anchor is None or gap_s > p.max_extrapolation_s:
             if anchor is not None:
@@ -446,6 +450,13 @@ class ScanMatcherFrontEnd:
             self._velocity = self._velocity + gain @ (measured - self._velocity)
             self._velocity_cov = (np.eye(3) - gain) @ p_v
             self._velocity_anchor = (pose, scan.stamp_ns, self._pose_cov)
+        if self._pose is not None and anchor is not None:
+            t = min(max(gap_s, 0.0), p.max_extrapolation_s)
+            predicted_theta_rad = self._pose.theta_rad + turn_rate_rad_s * t
+            correction = math.remainder(pose.theta_rad - predicted_theta_rad, 2 * math.pi)
+            c, s = math.cos(correction), math.sin(correction)
+            vx, vy, omega = self._velocity
+            self._velocity = np.array([c * vx + s * vy, -s * vx + c * vy, omega])
         self._pose = pose
         self._stamp_ns = scan.stamp_ns
         if scan.odom is not None:

@@ -43,6 +43,7 @@ compiled (`kernels`).
 
 from __future__ import annotations
 
+import functools
 import math
 import weakref
 from dataclasses import dataclass
@@ -212,7 +213,7 @@ def _wrap(theta_rad: FloatArray) -> FloatArray:
 
 
 def _huber(z: FloatArray, huber: float) -> FloatArray:
-    """The wall prior's cost at residuals z (σ), as `matcher._wall_cost_weight` computes it."""
+    """The wall prior's cost at residuals z (σ), as `matcher._wall_cost` computes it."""
     a = np.abs(z)
     out: FloatArray = np.where(a <= huber, z * z, 2.0 * huber * a - huber * huber)
     return out
@@ -232,6 +233,10 @@ class _Problem:
         self.origin = grid.origin_m
         self.cos, self.sin = np.cos(lat.thetas_rad), np.sin(lat.thetas_rad)
         self.n_rot = lat.thetas_rad.shape[0]
+        # Each rotation's cells of the points at the prediction, filled in by the first exact
+        # score at that rotation (`kernels.lattice_gather`).
+        self.cells = np.empty((self.n_rot, 2, self.px.shape[0]), dtype=np.int64)
+        self.celled = np.zeros(self.n_rot, dtype=np.bool_)
         self.n_rows, self.n_cols = 2 * lat.half_rows + 1, 2 * lat.half_cols + 1
         self.has_wall = lat.wall_heading_rad is not None and math.isfinite(lat.wall_sigma_rad)
         # Per rotation, once: its offset from the prediction, and from the walls' heading (σ)
@@ -273,8 +278,9 @@ class _Problem:
             pyr.width,
             self.px,
             self.py,
-            self.cos[k],
-            self.sin[k],
+            self.cos,
+            self.sin,
+            k,
             di,
             dj,
             lat.predicted_xy_m[0],
@@ -282,6 +288,8 @@ class _Problem:
             self.origin[0],
             self.origin[1],
             res,
+            self.cells,
+            self.celled,
         )
         scan = lat.scan_weight * looked_up.mean(axis=1, dtype=np.float64)
         info = lat.info_pred
@@ -329,6 +337,19 @@ class _Problem:
         return bound
 
 
+@functools.lru_cache(maxsize=64)
+def _dense_lattice(n_rot: int, n_rows: int, n_cols: int) -> tuple[IntArray, IntArray, IntArray]:
+    """Every pose of a lattice of that size, as (rotation, row, column) indices, in the brute
+    force's order (read-only: shared by every search of that size)."""
+    out = tuple(
+        g.ravel().astype(np.int64)
+        for g in np.meshgrid(np.arange(n_rot), np.arange(n_rows), np.arange(n_cols), indexing="ij")
+    )
+    for a in out:
+        a.flags.writeable = False
+    return out[0], out[1], out[2]
+
+
 def lattice_search(
     grid: LikelihoodGrid,
     costs: F32Array,
@@ -359,12 +380,7 @@ def lattice_search(
     if n_rot * n_rows * n_cols <= _DENSE_MAX_POSES:
         # A small lattice (40 Hz: a few cells, a few dozen rotations): every pose scored in
         # one batch costs less than the tree's levels of small batches, and is the brute force.
-        grid_k, grid_a, grid_b = (
-            g.ravel().astype(np.int64)
-            for g in np.meshgrid(
-                np.arange(n_rot), np.arange(n_rows), np.arange(n_cols), indexing="ij"
-            )
-        )
+        grid_k, grid_a, grid_b = _dense_lattice(n_rot, n_rows, n_cols)
         for lo in range(0, grid_k.shape[0], _DENSE_BATCH):
             hi = lo + _DENSE_BATCH
             consider(grid_k[lo:hi], grid_a[lo:hi], grid_b[lo:hi])

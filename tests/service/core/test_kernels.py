@@ -1,5 +1,6 @@
 """The compiled inner loops (`service.core.frontend.kernels`) compute what the numpy code they
-stand for computes, bit for bit: the field's bicubic interpolation and the search's lookups."""
+stand for computes: bit for bit, the search's lookups and the submaps' inserts; to rounding, the
+refinement's sums over the field's bicubic interpolation."""
 
 from __future__ import annotations
 
@@ -29,84 +30,94 @@ def _room() -> tuple[LikelihoodGrid, np.ndarray, np.random.Generator]:
     return grid, pts, rng
 
 
+def _numpy_terms(
+    grid: LikelihoodGrid, pts: np.ndarray, pose: Pose2D
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each point's field value and r² at `pose`, as numpy computes them (the reference)."""
+    q = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+    value, _ = grid.interpolate(q)
+    return value, residual_sq(value, 3.0)
+
+
+def _scan_terms(
+    grid: LikelihoodGrid, pts: np.ndarray, pose: Pose2D
+) -> tuple[float, float, np.ndarray, np.ndarray]:
+    ox, oy = grid.origin_m
+    c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
+    return kernels.scan_terms(
+        grid.values, ox, oy, grid.resolution_m, pts, c, s, pose.x_m, pose.y_m, 3.0
+    )
+
+
 @pytest.mark.parametrize("seed", range(5))
-def test_interpolate_is_the_grids_own_bit_for_bit(seed: int) -> None:
+def test_scan_terms_sum_the_grids_own_field(seed: int) -> None:
+    """The one-pass sums Σ r² and Σ M are numpy's over `LikelihoodGrid.interpolate` and
+    `residual_sq`, to rounding (the sums' order differs: sequential, not pairwise), on the
+    submap and far off it (points off the grid read 0, at the cap)."""
     grid, pts, _ = _room()
     rng = np.random.default_rng(seed)
-    # Poses on the submap and far off it (points off the grid read 0, no gradient).
     for _ in range(20):
         pose = Pose2D(rng.uniform(-20, 30), rng.uniform(-20, 30), rng.uniform(-math.pi, math.pi))
         if rng.integers(0, 2):
             pose = Pose2D(rng.normal(3.1, 0.2), rng.normal(3.4, 0.2), rng.normal(0.12, 0.05))
-        q = rotate_points(pts, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
-        want_v, want_g = grid.interpolate(q)
-        c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-        ox, oy = grid.origin_m
-        got_v, got_g = kernels.interpolate(
-            grid.values,
-            ox,
-            oy,
-            grid.resolution_m,
-            pts,
-            c,
-            s,
-            pose.x_m,
-            pose.y_m,
-        )
-        assert np.array_equal(got_v, want_v)
-        assert np.array_equal(got_g, want_g)
+        value, r_sq = _numpy_terms(grid, pts, pose)
+        sum_r_sq, sum_value, _, _ = _scan_terms(grid, pts, pose)
+        assert sum_r_sq == pytest.approx(float(r_sq.sum()), rel=1e-12, abs=1e-12)
+        assert sum_value == pytest.approx(float(value.sum()), rel=1e-12, abs=1e-12)
 
 
-def test_scan_jacobians_are_the_residuals_derivatives() -> None:
-    """The Gauss-Newton rows ∂r/∂(x, y, θ) and ∂(r²/2)/∂(x, y, θ) of each point against central
-    differences of r = √(-2 ln M) over the pose, where r is smooth (well off the surface, where
-    it is held off 0, and inside the cap): within 1e-4 of the row's size (measured: 1e-7)."""
+def test_scan_terms_derivatives_are_the_residuals() -> None:
+    """Σ ∂(r²/2)/∂(x, y, θ) and the Gauss-Newton Σ JᵀJ (J = ∂r/∂pose) against central
+    differences of numpy's r = √(-2 ln M) over the pose, on the points where r is smooth (well
+    off the surface, where it is held off 0, and inside the cap): within 1e-4 (measured:
+    1e-7)."""
     grid, pts, _ = _room()
     pose = Pose2D(3.12, 3.38, 0.125)
-    ox, oy = grid.origin_m
-
-    def residuals(x: float, y: float, t: float) -> tuple[np.ndarray, np.ndarray]:
-        value, grad = kernels.interpolate(
-            grid.values, ox, oy, grid.resolution_m, pts, math.cos(t), math.sin(t), x, y
-        )
-        return residual_sq(value, 3.0), (value, grad)
-
-    r_sq, (value, grad) = residuals(pose.x_m, pose.y_m, pose.theta_rad)
-    c, s = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
-    half_grad, jac = kernels.scan_jacobians(value, grad, r_sq, pts, c, s, 3.0)
+    r = np.sqrt(_numpy_terms(grid, pts, pose)[1])
+    smooth = (r > 0.5) & (r < 2.5)
+    assert smooth.sum() > 100
+    pts = np.ascontiguousarray(pts[smooth])
     steps = (1e-5, 1e-5, 1e-6)
-    num = np.zeros_like(jac)
+    num = np.zeros((pts.shape[0], 3))
     for axis, h in enumerate(steps):
         e = np.zeros(3)
         e[axis] = h
-        plus = residuals(pose.x_m + e[0], pose.y_m + e[1], pose.theta_rad + e[2])[0]
-        minus = residuals(pose.x_m - e[0], pose.y_m - e[1], pose.theta_rad - e[2])[0]
-        num[:, axis] = (np.sqrt(plus) - np.sqrt(minus)) / (2.0 * h)
-    r = np.sqrt(r_sq)
-    smooth = (r > 0.5) & (r < 2.5)
-    assert smooth.sum() > 100
-    size = np.linalg.norm(num[smooth], axis=1)
-    assert np.all(np.linalg.norm(jac[smooth] - num[smooth], axis=1) <= 1e-4 * size)
-    # ∂(r²/2) = r ∂r
-    want_half = r[smooth, None] * num[smooth]
-    assert np.all(np.linalg.norm(half_grad[smooth] - want_half, axis=1) <= 1e-4 * r[smooth] * size)
+        plus = _numpy_terms(
+            grid, pts, Pose2D(pose.x_m + e[0], pose.y_m + e[1], pose.theta_rad + e[2])
+        )
+        minus = _numpy_terms(
+            grid, pts, Pose2D(pose.x_m - e[0], pose.y_m - e[1], pose.theta_rad - e[2])
+        )
+        num[:, axis] = (np.sqrt(plus[1]) - np.sqrt(minus[1])) / (2.0 * h)
+    _, _, half_grad, jtj = _scan_terms(grid, pts, pose)
+    r = r[smooth]
+    want_half = (r[:, None] * num).sum(axis=0)  # ∂(r²/2) = r ∂r
+    assert np.linalg.norm(half_grad - want_half) <= 1e-4 * np.linalg.norm(want_half)
+    want_jtj = num.T @ num
+    assert np.linalg.norm(jtj - want_jtj) <= 1e-4 * np.linalg.norm(want_jtj)
 
 
 def test_lattice_gather_is_numpys_lookup_bit_for_bit() -> None:
+    """30 poses on 8 rotations, so each rotation's cells are computed once and reused."""
     grid, pts, rng = _room()
     cap = off_surface_cost(3.0)
     pyr = build_pyramid(grid.residual_costs(3.0), cap)
-    thetas = rng.uniform(-math.pi, math.pi, 30)
-    cos_k, sin_k = np.cos(thetas), np.sin(thetas)
+    thetas = rng.uniform(-math.pi, math.pi, 8)
+    k = rng.integers(0, 8, 30)
+    cos_t, sin_t = np.cos(thetas), np.sin(thetas)
     di, dj = rng.integers(-40, 40, 30), rng.integers(-40, 40, 30)
     px, py = np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1])
     tx, ty = 3.1, 3.4
     ox, oy = grid.origin_m
     res = grid.resolution_m
+    cells = np.empty((8, 2, px.shape[0]), dtype=np.int64)
+    celled = np.zeros(8, dtype=np.bool_)
     got = kernels.lattice_gather(
-        pyr.flat, pyr.row0, pyr.col0, pyr.height, pyr.width, px, py, cos_k, sin_k, di, dj,
-        tx, ty, ox, oy, res,
+        pyr.flat, pyr.row0, pyr.col0, pyr.height, pyr.width, px, py, cos_t, sin_t, k, di, dj,
+        tx, ty, ox, oy, res, cells, celled,
     )  # fmt: skip
+    assert celled[np.unique(k)].all()
+    cos_k, sin_k = cos_t[k], sin_t[k]
     mx = cos_k[:, None] * px - sin_k[:, None] * py + tx
     my = sin_k[:, None] * px + cos_k[:, None] * py + ty
     rows = np.rint((my - oy) / res - 0.5).astype(np.int64) + di[:, None]

@@ -98,8 +98,8 @@ def test_a_scan_the_submap_half_explains_is_not_relocalised() -> None:
 
 def test_a_plain_corridor_gives_a_covariance_long_along_it() -> None:
     """No structure along the corridor: the scan's information there is nil, so the posterior
-    along it is the prior's, at least 10 times the σ across it. (The submap holds ten scans,
-    as a submap does: one noisy scan alone draws wiggly walls.)"""
+    along it is the prior's (and no wider), at least 10 times the σ across it. (The submap
+    holds ten scans, as a submap does: one noisy scan alone draws wiggly walls.)"""
     rng = np.random.default_rng(2)
     poses = [Pose2D(-0.15 * k, 1.0 + 0.02 * (k % 3), 0.0) for k in range(10)]
     grid = grid_of([(scan_of(CORRIDOR, pose, rng), pose) for pose in poses])
@@ -108,6 +108,7 @@ def test_a_plain_corridor_gives_a_covariance_long_along_it() -> None:
     result = match(grid, matched_points(scan), Priors(Pose2D(0.3, 1.0, 0.0), cov), MatchOptions())
     sigma_along, sigma_across = np.sqrt(np.diag(result.covariance)[:2])
     assert sigma_along >= 10.0 * sigma_across
+    assert sigma_along <= 0.2 * 1.001  # a posterior, never wider than the prior
     assert abs(result.pose.y_m - 1.0) < 0.01  # across: measured
     assert abs(result.pose.x_m - 0.3) < 0.02  # along: the prior's
 
@@ -431,6 +432,24 @@ def test_warm_up_loads_every_compiled_kernel() -> None:
     """The service calls `warm_up` at start so that a robot's first scan does not wait on numba:
     every kernel the matcher uses has a compiled signature after it."""
     warm_up()
-    for name in ("interpolate", "scan_jacobians", "lattice_gather", "block_bounds", "carve"):
+    for name in ("gauss_newton", "lattice_gather", "block_bounds", "carve"):
         assert getattr(kernels, name).signatures, name
     assert kernels.hard_energies.signatures
+
+
+def test_a_heading_the_match_corrects_does_not_turn_the_velocity() -> None:
+    """The velocity lives in the robot frame. A scan the match puts 1° off the heading the
+    velocity predicted (it predicted no turn) says where the robot faces, not that its motion
+    turned: the velocity keeps its direction in the map and its speed."""
+    fe = ScanMatcherFrontEnd(MatcherParams(use_odometry=False))
+    fe.process(scan_of(ROOM, Pose2D(1.5, 2.5, 0.0), np.random.default_rng(1)))
+    state = fe.state()
+    state.velocity = np.array([0.7, 0.0, 0.0])
+    state.velocity_cov = np.eye(3) * 1e-4
+    fe.__setstate__({"params": dataclasses.asdict(fe.params), "state": state})
+    corrected = Pose2D(0.07, 0.0, math.radians(1.0))  # 0.1 s on, facing 1° to the left
+    scan = scan_of(ROOM, Pose2D(1.57, 2.5, 0.0), np.random.default_rng(2), stamp_ns=100_000_000)
+    fe._update_motion(scan, corrected, np.eye(3) * 1e6, np.eye(3) * 1e-6)
+    vx, vy, _ = fe.state().velocity
+    assert math.hypot(vx, vy) == pytest.approx(0.7, abs=1e-12)
+    assert corrected.theta_rad + math.atan2(vy, vx) == pytest.approx(0.0, abs=1e-12)
