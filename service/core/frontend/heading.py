@@ -68,29 +68,6 @@ def _rotate_into(points_xy_m: FloatArray, columns: FloatArray, out: FloatArray) 
     out += tmp
 
 
-def _projection_indices(
-    points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float
-) -> tuple[FloatArray, npt.NDArray[np.intp], int]:
-    """Rotated coordinates in bin units (shifted positive) and their flat bin indices.
-
-    Returns (proj (M, 2K), idx (M, 2K), width): column j < K is the x coordinate at angle j,
-    column K + j the y coordinate; idx = floor(proj) + column · width. Both arrays are scratch
-    buffers, valid until the next call in this thread.
-    """
-    k = angles_rad.shape[0]
-    m = points_xy_m.shape[0]
-    # Both coordinates of R(α)·p for every α: (M, 2K).
-    proj = _scratch("proj", m * 2 * k, np.float64).reshape(m, 2 * k)
-    _rotate_into(points_xy_m, _rotation_columns(angles_rad, bin_m), proj)
-    lo = math.floor(float(proj.min())) - 1
-    width = math.ceil(float(proj.max())) - lo + 2
-    proj -= lo  # now positive: truncation is floor
-    idx = _scratch("idx", m * 2 * k, np.intp).reshape(m, 2 * k)
-    np.copyto(idx, proj, casting="unsafe")
-    idx += np.arange(2 * k, dtype=np.intp) * width
-    return proj, idx, width
-
-
 def _hard_offset(points_xy_m: FloatArray, bin_m: float) -> tuple[int, int]:
     """(offset, width) in bins of hard bins: the offset from the largest range instead of the
     data's extremes (only bin membership matters for hard bins, and an offset by whole bins
@@ -132,20 +109,6 @@ def _projection_histograms(
     return h2[:k], h2[k:]
 
 
-def _soft_counts(proj: FloatArray, idx: npt.NDArray[np.intp], n_bins: int) -> FloatArray:
-    """Linear-interpolation histogram: each point split between its bin and the next one."""
-    frac = proj.ravel()  # reuse: proj is scratch
-    tmp = _scratch("tmp", frac.shape[0], np.float64)
-    np.floor(frac, out=tmp)
-    frac -= tmp
-    np.subtract(1.0, frac, out=tmp)
-    flat_idx = idx.ravel()
-    h = np.asarray(np.bincount(flat_idx, weights=tmp, minlength=n_bins), dtype=np.float64)
-    flat_idx += 1
-    h += np.bincount(flat_idx, weights=frac, minlength=n_bins)
-    return h
-
-
 def heading_scores(
     points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float, soft: bool = True
 ) -> FloatArray:
@@ -154,8 +117,7 @@ def heading_scores(
     nearest bins, which makes the score smooth in the angle."""
     k = angles_rad.shape[0]
     if soft:
-        proj, idx, width = _projection_indices(points_xy_m, angles_rad, bin_m)
-        h = _soft_counts(proj, idx, 2 * k * width)[: 2 * k * width].reshape(2 * k, width)
+        h, _ = kernels.soft_histograms(points_xy_m, _rotation_columns(angles_rad, bin_m))
         sq = np.einsum("ij,ij->i", h, h)
         return np.asarray(sq[:k] + sq[k:], dtype=np.float64)
     # Hard bins: integer counts, so Σ h² is exact in int64.
