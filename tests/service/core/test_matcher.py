@@ -432,7 +432,7 @@ def test_warm_up_loads_every_compiled_kernel() -> None:
     """The service calls `warm_up` at start so that a robot's first scan does not wait on numba:
     every kernel the matcher uses has a compiled signature after it."""
     warm_up()
-    for name in ("gauss_newton", "lattice_gather", "block_bounds", "carve"):
+    for name in ("gauss_newton", "lattice_gather", "block_bounds", "carve", "soft_histograms"):
         assert getattr(kernels, name).signatures, name
     assert kernels.hard_energies.signatures
 
