@@ -374,7 +374,9 @@ class ScanMatcherFrontEnd:
         prior_cov = self._cov_since_keyframe + cov_pred
         cov = np.linalg.inv(np.linalg.inv(prior_cov) + h_scan)
         cov = 0.5 * (cov + cov.T)
-        self._update_motion(scan, pose, h_scan, cov_pred)
+        self._update_motion(
+            scan, pose, h_scan, cov_pred, predicted.theta_rad if odometry_won else None
+        )
         keyframe = self._is_keyframe(pose)
         if keyframe:
             self._insert(scan, returns, pose)
@@ -461,7 +463,12 @@ class ScanMatcherFrontEnd:
         return np.diag([fwd * fwd, lat * lat, alpha * alpha])
 
     def _update_motion(
-        self, scan: LaserScan, pose: Pose2D, h_scan: FloatArray, cov_pred: FloatArray
+        self,
+        scan: LaserScan,
+        pose: Pose2D,
+        h_scan: FloatArray,
+        cov_pred: FloatArray,
+        odometry_theta_rad: float | None = None,
     ) -> None:
         """Kalman step of the velocity: the motion since the previous step, over at least
         `velocity_window_s` (real logs hold scans 1 ms apart, over which a match's noise would
@@ -498,7 +505,11 @@ class ScanMatcherFrontEnd:
             self._velocity_anchor = (pose, scan.stamp_ns, self._pose_cov)
         if self._pose is not None and anchor is not None:
             t = min(max(gap_s, 0.0), p.max_extrapolation_s)
-            predicted_theta_rad = self._pose.theta_rad + turn_rate_rad_s * t
+            predicted_theta_rad = (
+                self._pose.theta_rad + turn_rate_rad_s * t
+                if odometry_theta_rad is None
+                else odometry_theta_rad
+            )
             correction = math.remainder(pose.theta_rad - predicted_theta_rad, 2 * math.pi)
             c, s = math.cos(correction), math.sin(correction)
             vx, vy, omega = self._velocity
