@@ -477,7 +477,8 @@ class ScanMatcherFrontEnd:
         match does not become a speed); and where a door pins the pose again after a plain
         stretch, the correction says where the robot is, not how fast it went (the anchor's
         position along the corridor was loose). A heading the match corrected, beyond the turn
-        the velocity predicted, says where the robot faces, not that its motion turned: the
+        the prediction made (odometry's, `odometry_theta_rad`, when odometry predicted the scan;
+        else the velocity's), says where the robot faces, not that its motion turned: the
         velocity (robot frame) is turned back by the correction, so that its direction in the
         map is kept."""
         p = self.params

@@ -437,10 +437,17 @@ def test_warm_up_loads_every_compiled_kernel() -> None:
     assert kernels.hard_energies.signatures
 
 
-def test_a_heading_the_match_corrects_does_not_turn_the_velocity() -> None:
-    """The velocity lives in the robot frame. A scan the match puts 1° off the heading the
-    velocity predicted (it predicted no turn) says where the robot faces, not that its motion
-    turned: the velocity keeps its direction in the map and its speed."""
+@pytest.mark.parametrize(
+    ("odometry_turn_deg", "turned_back_deg"),
+    [(None, 1.0), (1.0, 0.0), (0.5, 0.5)],
+)
+def test_a_heading_the_match_corrects_does_not_turn_the_velocity(
+    odometry_turn_deg: float | None, turned_back_deg: float
+) -> None:
+    """The velocity lives in the robot frame. A scan the match puts at 1° where the prediction
+    turned less says where the robot faces, not that its motion turned: the velocity is turned
+    back by the difference, keeping its speed. The prediction's turn is the velocity's (none
+    here) or, when odometry predicted the scan, odometry's: a turn odometry saw is a turn."""
     fe = ScanMatcherFrontEnd(MatcherParams(use_odometry=False))
     fe.process(scan_of(ROOM, Pose2D(1.5, 2.5, 0.0), np.random.default_rng(1)))
     state = fe.state()
@@ -449,10 +456,11 @@ def test_a_heading_the_match_corrects_does_not_turn_the_velocity() -> None:
     fe.__setstate__({"params": dataclasses.asdict(fe.params), "state": state})
     corrected = Pose2D(0.07, 0.0, math.radians(1.0))  # 0.1 s on, facing 1° to the left
     scan = scan_of(ROOM, Pose2D(1.57, 2.5, 0.0), np.random.default_rng(2), stamp_ns=100_000_000)
-    fe._update_motion(scan, corrected, np.eye(3) * 1e6, np.eye(3) * 1e-6)
+    odometry_theta = None if odometry_turn_deg is None else math.radians(odometry_turn_deg)
+    fe._update_motion(scan, corrected, np.eye(3) * 1e6, np.eye(3) * 1e-6, odometry_theta)
     vx, vy, _ = fe.state().velocity
     assert math.hypot(vx, vy) == pytest.approx(0.7, abs=1e-12)
-    assert corrected.theta_rad + math.atan2(vy, vx) == pytest.approx(0.0, abs=1e-12)
+    assert math.degrees(math.atan2(vy, vx)) == pytest.approx(-turned_back_deg, abs=1e-9)
 
 
 def _laps_with_a_biased_wheel(sigma_deg_per_m: float, scans: int) -> ScanMatcherFrontEnd:
