@@ -24,9 +24,8 @@ lint: $(STAMP)
 test: lint
 	bash scripts/run-pytest.sh $(BIN)/python
 
-# Hand-written mutants of the wire decoder, the recording writer, the cascade estimator and the
-# matcher, each run against its part's fast tests in a scratch copy (a few minutes; not part of
-# `make test`).
+# Hand-written mutants of the wire decoder, the recording writer and the matcher, each run
+# against its part's fast tests in a scratch copy (a few minutes; not part of `make test`).
 mutation: $(STAMP)
 	$(BIN)/python scripts/mutation.py --write docs/benchmarks.md
 

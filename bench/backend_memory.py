@@ -34,7 +34,7 @@ def run(km: float, *, seed: int = 1, size: str = "paper", every_m: float = 100.0
     probe = make_synthetic_run(seed, max_scans=2, size=size)
     laps = max(1.0, km * 1000.0 / probe.loop_length_m)
     synthetic = make_synthetic_run(seed, laps=laps, size=size)
-    session = SlamSession(None, SlamParams(loop_closure=True))
+    session = SlamSession(SlamParams(loop_closure=True))
     proc = psutil.Process()
     gc.collect()
     rss0 = proc.memory_info().rss

@@ -37,7 +37,7 @@ def run(km: float, *, every_m: float = 250.0, seed: int = 1) -> dict[str, Any]:
     laps = max(1.0, km * 1000.0 / probe.loop_length_m)
     synthetic = make_synthetic_run(seed, laps=laps, size="paper")
     # As the service holds it: the map as chunks (`maps.composed`), in the checkpoint.
-    session = SlamSession(None, SlamParams(loop_closure=True), map_resolution_m=0.05)
+    session = SlamSession(SlamParams(loop_closure=True), map_resolution_m=0.05)
     samples: list[dict[str, float]] = []
     travelled_m, next_m = 0.0, every_m
     with tempfile.TemporaryDirectory() as tmp:

@@ -1,6 +1,6 @@
 """Accuracy evaluation: the offline mapper on ACES, Intel and synthetic buildings.
 
-    python -m bench.evaluate [--quick] [--out bench/out] [--front-end matcher|manhattan|paper]
+    python -m bench.evaluate [--quick] [--out bench/out] [--front-end matcher|paper]
 
 For each dataset, with the odometry prior and without, it runs `service.offline.map_scans`
 (the code behind `mapping-service map`), evaluates the relation metric of Kümmerle et al. 2009
@@ -346,7 +346,9 @@ def evaluate_real(
     if quick:
         result.extra["note"] = f"first {total} scans; {missing} relations outside them"
     elif not use_odometry:
-        result.extra["start_sweep"] = start_offset_sweep(dataset, loop_closure=loop_closure)
+        result.extra["start_sweep"] = start_offset_sweep(
+            dataset, loop_closure=loop_closure, front_end=front_end
+        )
     if run.loops is not None:
         result.extra["loop_closures"] = report["loop_closures"]
         result.extra["backend_s"] = report["backend_s"]
@@ -382,15 +384,16 @@ def _split_errors(relations: Sequence[Relation], errors: RelationErrors) -> dict
 START_OFFSETS_S = (0.0, 0.15, 0.3, 0.45, 0.6)  # share of the run skipped
 
 
-def start_offset_sweep(dataset: RealDataset, *, loop_closure: bool = True) -> dict[str, Any]:
+def start_offset_sweep(
+    dataset: RealDataset, *, loop_closure: bool = True, front_end: FrontEndName = DEFAULT_FRONT_END
+) -> dict[str, Any]:
     """Mean relation error (no odometry) when the mapper starts at later scans of the log.
 
     Each start is a fresh session on the rest of the log, scored on the relations inside it.
     """
     from clients.logs import iter_log_scans
     from service.bridge import scan_to_laser
-    from service.core.frontend.params import EstimatorParams
-    from service.core.slam import SlamParams, SlamSession
+    from service.core.slam import SlamParams, SlamSession, make_frontend
 
     lasers = [
         scan_to_laser(s, use_odometry=False) for s in iter_log_scans(dataset.bag, use_odom=False)
@@ -400,7 +403,7 @@ def start_offset_sweep(dataset: RealDataset, *, loop_closure: bool = True) -> di
     for share in START_OFFSETS_S:
         first = round(share * len(lasers))
         slam = SlamSession(
-            EstimatorParams(use_odometry=False), SlamParams(loop_closure=loop_closure)
+            SlamParams(loop_closure=loop_closure), make_frontend(front_end, use_odometry=False)
         )
         stamps = [scan.stamp_ns for scan in lasers[first:]]
         for scan in lasers[first:]:

@@ -41,10 +41,10 @@ class Pipeline:
     """One estimator and one occupancy grid, fed as a mapping session feeds them."""
 
     def __init__(self, keyframes_only: bool) -> None:
-        from service.core.frontend.estimator import ManhattanEstimator
         from service.core.maps.grid import OccupancyGrid
+        from service.core.slam import make_frontend
 
-        self.estimator = ManhattanEstimator()
+        self.estimator = make_frontend()
         self.grid = OccupancyGrid()
         self.keyframes_only = keyframes_only
         self.integrations = 0

@@ -23,21 +23,92 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import importlib
 import io
 import logging
+import os
 import pstats
 import sys
 import time
+from itertools import islice
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 import numpy as np
 
-from bench.profile_estimator import aces_scans, live_scans, module_of_tree, synthetic_scans
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
 from service.core.types import LaserScan, Pose2D
 
 log = logging.getLogger(__name__)
+
+# Like bench/evaluate.py: ../shared/datasets next to the checkout (DATASETS_DIR overrides).
+DATASETS = Path(
+    os.environ.get("DATASETS_DIR", Path(__file__).resolve().parents[2] / "shared" / "datasets")
+)
+ACES_BAG = DATASETS / "aces" / "aces.sort.bag"
+
+
+def synthetic_scans(n: int, seed: int = 0) -> list[LaserScan]:
+    from sensor_agent.sim.world import (
+        LaserModel,
+        generate_building,
+        generate_trajectory,
+        simulate_scan,
+    )
+
+    world = generate_building(seed, size="paper")
+    traj = generate_trajectory(world, seed, spacing_m=0.3)
+    model = LaserModel.utm30lx()
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(min(n, len(traj))):
+        sample = simulate_scan(world, traj.poses[i], model, rng)
+        out.append(
+            LaserScan(
+                stamp_ns=int(traj.stamps_ns[i]),
+                angle_min_rad=model.angle_min_rad,
+                angle_increment_rad=model.angle_increment_rad,
+                ranges_m=sample.ranges_m,
+                range_min_m=model.range_min_m,
+                range_max_m=model.range_max_m,
+            )
+        )
+    return out
+
+
+def live_scans(n: int, seed: int = 1) -> list[LaserScan]:
+    """`n` scans at 40 Hz along the simulator's continuous motion: what the load generator sends."""
+    from bench.loadgen import path_scans
+
+    return path_scans(seed, n, 1.0 / 40.0)
+
+
+def aces_scans(n: int, use_odometry: bool) -> list[LaserScan]:
+    from clients.logs import iter_log_scans
+    from service.bridge import scan_to_laser
+
+    if not ACES_BAG.exists():
+        return []
+    scans = islice(iter_log_scans(ACES_BAG, use_odom=use_odometry), n)
+    return [scan_to_laser(s, use_odometry=use_odometry) for s in scans]
+
+
+def module_of_tree(root: Path, name: str) -> ModuleType:
+    """The module `name` (under `service`) of the source tree `root`, imported from its own
+    `service` package beside ours, for old-against-new runs in one process."""
+    ours = {k: sys.modules.pop(k) for k in list(sys.modules) if k.split(".")[0] == "service"}
+    sys.path.insert(0, str(root))
+    try:
+        module = importlib.import_module(name)
+        if not Path(module.__file__ or "").resolve().is_relative_to(root.resolve()):
+            raise SystemExit(f"{root}: no {name.replace('.', '/')}.py there")
+    finally:
+        sys.path.remove(str(root))
+        for k in [k for k in sys.modules if k.split(".")[0] == "service"]:
+            del sys.modules[k]
+        sys.modules.update(ours)
+    return module
 
 
 def load_front_end(root: Path) -> Any:

@@ -1,4 +1,4 @@
-"""The paper's method read literally (IROS 2010, see docs/estimator.md): the benchmark baseline.
+"""The paper's method read literally (IROS 2010, docs/paper-frontend.md): the benchmark baseline.
 
 Deliberately straightforward and slow, as the paper describes it:
 - thinning with a Python loop (keep a point when it is >= 0.05 m from the last kept one);
@@ -9,7 +9,7 @@ Deliberately straightforward and slow, as the paper describes it:
   ±0.8 m, re-histogram it with 0.03 m bins for every shift, correlate, take the argmax (x and y
   independently); no prediction, no refinement, no ambiguity checks.
 
-Same interface as `ManhattanEstimator` (process / reset), so benchmarks can swap them.
+Same interface as the front ends (process / reset), so benchmarks can swap them.
 """
 
 from __future__ import annotations

@@ -355,8 +355,8 @@ def _speed_section(speed: dict[str, Any] | None, img_rel: str) -> list[str]:
             "",
             (
                 "The service's own path is different: a UTM-30LX at 40 Hz moves ~2 cm between "
-                "scans, so a keyframe comes every ~17 scans and the heading is tracked by the "
-                f"fine search alone (`docs/estimator.md`). Ours alone on {live['scans']:,} such "
+                "scans, so few scans are keyframes and the prediction is close. Ours alone on "
+                f"{live['scans']:,} such "
                 f"scans (best median of {live.get('passes', 1)} passes; "
                 f"the load generator's path, same building): median {t['median_ms']:.3f} "
                 f"ms, p99 {t['p99_ms']:.3f} ms, CPU median {c['median_ms']:.3f} ms per scan."
@@ -365,21 +365,6 @@ def _speed_section(speed: dict[str, Any] | None, img_rel: str) -> list[str]:
     lines += ["", f"![time per scan, cumulative]({img_rel}/{PLOT_SPEED})", ""]
     lines += _targets_table(speed["targets"])
     lines += _profile_block(speed.get("profile"))
-    if any(t["passed"] is False for t in speed["targets"]):
-        lines += [
-            "",
-            (
-                "Why a speed target is missed: no single function dominates (the profile above); "
-                "the time is spread over some forty numpy calls per scan of a few to tens of µs "
-                "each, on ~450 thinned points. At the paper's 0.3 m spacing nearly every scan is "
-                "also a keyframe, so the per-keyframe work (local-map reference, its densities "
-                "and band index, the occupied-cell bitmap) and the full coarse-to-fine heading "
-                "search run on every scan; so does the turn from the range profiles, searched "
-                "over what the robot can turn in the 0.43 s between scans (±90°, ~15 % of the "
-                "time in the profile; at 40 Hz it is skipped). `docs/estimator.md` (speed rounds "
-                "2 to 4) has the measured history and the next step."
-            ),
-        ]
     return lines
 
 
@@ -549,8 +534,9 @@ def _growth_section(growth: dict[str, Any] | None, img_rel: str) -> list[str]:
         (
             "One estimator and one occupancy grid, as in a mapping session, over "
             f"{growth['length_m']:.0f} m ({growth['scans']:,} scans, one every "
-            f"{growth['spacing_m']} m; {'; '.join(growth['notes'])}). Per scan: "
-            f"`ManhattanEstimator.process`, then {grid_note}, as the service's session does. "
+            f"{growth['spacing_m']} m; {'; '.join(growth['notes'])}). Per scan: the default "
+            f"front end's `process` (the matcher), then {grid_note}, as the service's session "
+            "does. "
             f"The building's corridor loop is {growth['loop_length_m']:.0f} m, so a long run "
             "drives it again; the length is chosen so that the last 10 % of the run covers the "
             "same corridors as the first 10 % (whole laps later): the two windows differ by the "

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.profile_estimator import ACES_BAG
+from bench.matcher_speed import ACES_BAG
 from service.core.frontend import matcher
 from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
 from service.core.frontend.matcher import MatchOptions, Priors

@@ -43,16 +43,16 @@ class Method:
 
 
 def ours() -> Method:
-    from service.core.frontend.estimator import ManhattanEstimator
+    from service.core.slam import make_frontend
 
-    est = ManhattanEstimator()
+    est = make_frontend()
 
     def step(scan: LaserScan) -> tuple[float, float, float]:
         p = est.process(scan).pose
         return (p.x_m, p.y_m, p.theta_rad)
 
     return Method(
-        "ours", "`service.core.frontend.estimator.ManhattanEstimator`, default parameters", step
+        "ours", "the default front end (`service.core.slam.make_frontend()`: the matcher)", step
     )
 
 
@@ -130,12 +130,12 @@ def time_alone(scans: Sequence[LaserScan], passes: int = 3) -> dict[str, Any]:
     caches the other methods filled; alone is how the service's mapper runs it. This section
     has no side-by-side partner to share the machine's noise with, hence the best of a few.
     """
-    from service.core.frontend.estimator import ManhattanEstimator
+    from service.core.slam import make_frontend
 
     perf, cpu = time.perf_counter_ns, time.process_time_ns
     best: tuple[TimingSummary, TimingSummary] | None = None
     for _ in range(passes):
-        est = ManhattanEstimator()
+        est = make_frontend()
         wall_ns, cpu_ns = [], []
         for scan in scans:
             c0, t0 = cpu(), perf()
@@ -158,8 +158,8 @@ def time_alone(scans: Sequence[LaserScan], passes: int = 3) -> dict[str, Any]:
 def time_live(seed: int, n_scans: int, passes: int = 3) -> dict[str, Any]:
     """Ours alone at 40 Hz along the simulator's robot motion: the path the service runs.
 
-    At 40 Hz a keyframe comes every ~17 scans and the heading is tracked (docs/estimator.md),
-    so the cost per scan differs from the paper's 0.3 m spacing, which the comparison uses.
+    At 40 Hz the scans are centimetres apart and few are keyframes, so the cost per scan
+    differs from the paper's 0.3 m spacing, which the comparison uses.
     A few passes with a fresh estimator each; the pass with the lowest median is kept (this
     section has no side-by-side partner to share the machine's noise with).
     """
@@ -271,10 +271,10 @@ def run_speed(
 
 def profile_ours(run: SyntheticRun, max_scans: int = 400) -> Profile:
     """cProfile of a fresh estimator over the same scans: where a missed target's time goes."""
-    from service.core.frontend.estimator import ManhattanEstimator
+    from service.core.slam import make_frontend
 
-    est = ManhattanEstimator()
+    est = make_frontend()
     scans = run.scans[:max_scans]
     return profile_calls(
-        est.process, scans, f"ManhattanEstimator.process over {len(scans)} synthetic scans"
+        est.process, scans, f"the matcher's process over {len(scans)} synthetic scans"
     )

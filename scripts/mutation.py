@@ -1,26 +1,22 @@
 """Mutation check: hand-written mutants, each applied alone in a scratch copy of the checkout.
 
 `make mutation` runs it (not part of `make test` or `.ci/run`). Every mutant is a plausible bug
-in one of four places the issue names: the wire decoder (`clients/wire.py`), the recording
-writer (`clients/recording.py`), the old front end's public steps ("estimator":
-`service/core/frontend/estimator.py`, `heading.py`) and the default front end, the matcher
-("matcher": its search, `matcher.py` and `search.py` with the branch and bound's bounds in
-`kernels.py`; its Gauss-Newton refinement; its covariance, the weakest axis from the response;
-the walls' heading prior, `walls.py`; the motion prior's mixture). For each, only the fast
+in one of three places the issue names: the wire decoder (`clients/wire.py`), the recording
+writer (`clients/recording.py`) and the front end, the matcher ("matcher": its search,
+`matcher.py` and `search.py` with the branch and bound's bounds in `kernels.py`; its
+Gauss-Newton refinement; its covariance, the weakest axis from the response; the walls' heading
+prior, `walls.py`; the motion prior's mixture). For each, only the fast
 tests of that place run, in stages (a later stage only when the earlier ones pass), with
 `-x`: a mutant is *killed* when a test fails, *survived* when all pass. The unmutated copy
 must pass every stage first.
 
-    python scripts/mutation.py [--only wire,recording,estimator,matcher] [--jobs 2] [--write DOC]
+    python scripts/mutation.py [--only wire,recording,matcher] [--jobs 2] [--write DOC]
 
-Two scratch copies run side by side by default (`--jobs`); about 8 minutes on a loaded 2-core
-machine for the first three parts, and the matcher's 16 mutants about 3 more with `--jobs 1`.
+Two scratch copies run side by side by default (`--jobs`).
 A mutant whose text no longer occurs exactly once stops the run: update the mutant.
 `--write` replaces DOC's whole mutation section: write it from a run of every part.
 
-Exits 1 when a wire, recording or matcher mutant survives (the target is none), 0 otherwise;
-surviving estimator mutants are reported, not failed (some change nothing the tests can see,
-by design).
+Exits 1 when a mutant survives (the target is none), 0 otherwise.
 """
 
 from __future__ import annotations
@@ -55,33 +51,20 @@ WIRE_STAGES = (
 RECORDING_STAGES = (
     ("tests/clients/test_recording.py", "tests/clients/test_logs.py::test_mrec_round_trip"),
 )
-ESTIMATOR_STAGES = (
-    (
-        "tests/service/core/test_estimator_known.py",
-        "tests/service/core/test_estimator_motion.py",
-        "tests/service/core/test_estimator_turns_and_stops.py",
-        "tests/service/core/test_core_heading_window.py",
-    ),
-    (
-        "tests/service/core/test_estimator_live.py",
-        "tests/service/core/test_estimator_synthetic.py",
-    ),
-)
 MATCHER_STAGES = (
     ("tests/service/core/test_search.py", "tests/service/core/test_kernels.py"),
-    ("tests/service/core/test_matcher.py", "tests/service/core/test_core_heading_window.py"),
+    ("tests/service/core/test_matcher.py", "tests/service/core/test_heading.py"),
 )
 STAGES = {
     "wire": WIRE_STAGES,
     "recording": RECORDING_STAGES,
-    "estimator": ESTIMATOR_STAGES,
     "matcher": MATCHER_STAGES,
 }
 
 
 @dataclass(frozen=True)
 class Mutant:
-    group: str  # "wire", "recording", "estimator" or "matcher"
+    group: str  # "wire", "recording" or "matcher"
     name: str
     path: str  # relative to the checkout
     original: str  # must occur exactly once in the file
@@ -94,12 +77,6 @@ def _w(name: str, original: str, mutated: str) -> Mutant:
 
 def _r(name: str, original: str, mutated: str) -> Mutant:
     return Mutant("recording", name, "clients/recording.py", original, mutated)
-
-
-def _e(
-    name: str, original: str, mutated: str, path: str = "service/core/frontend/estimator.py"
-) -> Mutant:
-    return Mutant("estimator", name, path, original, mutated)
 
 
 def _m(name: str, original: str, mutated: str, path: str = "matcher.py") -> Mutant:
@@ -305,70 +282,7 @@ MUTANTS: tuple[Mutant, ...] = (
         "            report.valid_end = pos\n",
         "            report.valid_end = pos - _RECORD_HEADER.size\n",
     ),
-    # -- the estimator's public steps ----------------------------------------------------------
-    _e(
-        "commit: translation frozen at the first pose",
-        "            stamp_ns=scan.stamp_ns,\n            pose=pose,",
-        "            stamp_ns=scan.stamp_ns,\n            pose=Pose2D(0.0, 0.0, pose.theta_rad),",
-    ),
-    _e(
-        "heading: the ±45° rule always picks k = 0",
-        "    k = round((predicted_rad - manhattan_rad) / QUARTER)",
-        "    k = 0",
-        path="service/core/frontend/heading.py",
-    ),
-    _e(
-        "first scan: map axes not the Manhattan angle",
-        "        pose = Pose2D(0.0, 0.0, heading.theta_rad)",
-        "        pose = Pose2D(0.0, 0.0, 0.0)",
-    ),
-    _e(
-        "prediction: no constant-velocity motion",
-        "            pred = self._pose.compose(Pose2D(v.x_m * dt, v.y_m * dt, v.theta_rad * dt))",
-        "            pred = self._pose",
-    ),
-    _e(
-        "prediction: odometry delta ignored",
-        "            return self._pose.compose(delta), PoseFlag.ODOMETRY_PRIOR",
-        "            return self._pose, PoseFlag.ODOMETRY_PRIOR",
-    ),
-    _e(
-        "translation: axes swapped",
-        "        x, y = mx.offset_m, my.offset_m",
-        "        x, y = my.offset_m, mx.offset_m",
-    ),
-    _e(
-        "translation: no sub-bin peak refinement",
-        "                refine=p.subbin_refinement,",
-        "                refine=False,",
-    ),
-    _e(
-        "flags: ambiguity in x reported as y",
-        "        if mx.ambiguous:\n            flags |= PoseFlag.AMBIGUOUS_X",
-        "        if mx.ambiguous:\n            flags |= PoseFlag.AMBIGUOUS_Y",
-    ),
-    _e(
-        "degeneracy: too few points not flagged",
-        "        if pts.shape[0] < self.params.min_points:",
-        "        if pts.shape[0] < 0:",
-    ),
-    _e(
-        "keyframes: the map never gets a second keyframe",
-        "                is_kf = dist >= p.keyframe_distance_m or dang >= math.radians("
-        "p.keyframe_angle_deg)",
-        "                is_kf = False",
-    ),
-    _e(
-        "quality: sharpness of the peaks ignored",
-        "        q = heading.quality * (0.5 + 0.25 * mx.sharpness + 0.25 * my.sharpness)",
-        "        q = heading.quality",
-    ),
-    _e(
-        "velocity: smoothing weights swapped",
-        "0.3 * v.x_m + 0.7 * vx,\n                        0.3 * v.y_m + 0.7 * vy,",
-        "0.7 * v.x_m + 0.3 * vx,\n                        0.7 * v.y_m + 0.3 * vy,",
-    ),
-    # -- the matcher (the default front end) ---------------------------------------------------
+    # -- the matcher (the front end) -------------------------------------------------------
     _m(
         "search: window one column short of ±3σ in x",
         "    return thetas, math.ceil(half_y / res), math.ceil(half_x / res)",
@@ -450,8 +364,8 @@ MUTANTS: tuple[Mutant, ...] = (
     ),
     _m(
         "heading prior: nearest member truncated, not rounded",
-        "    turns = round((predicted_rad - manhattan) / QUARTER)",
-        "    turns = int((predicted_rad - manhattan) / QUARTER)",
+        "    turns = round((predicted_rad - walls_rad) / QUARTER)",
+        "    turns = int((predicted_rad - walls_rad) / QUARTER)",
         path="walls.py",
     ),
     _m(
@@ -589,7 +503,7 @@ def report(results: Sequence[Result], elapsed_s: float) -> str:
         "| part | mutants | killed | score | surviving mutants |",
         "|---|---|---|---|---|",
     ]
-    for group in ("wire", "recording", "estimator", "matcher"):
+    for group in ("wire", "recording", "matcher"):
         rs = [r for r in results if r.mutant.group == group]
         if not rs:
             continue
@@ -598,7 +512,6 @@ def report(results: Sequence[Result], elapsed_s: float) -> str:
         label = {
             "wire": "wire decoder (`clients/wire.py`)",
             "recording": "recording writer (`clients/recording.py`)",
-            "estimator": "estimator steps (`service/core/frontend/estimator.py`, `heading.py`)",
             "matcher": "matcher (`service/core/frontend/matcher.py`, `search.py`, `kernels.py`, "
             "`walls.py`)",
         }[group]
@@ -610,10 +523,8 @@ def report(results: Sequence[Result], elapsed_s: float) -> str:
         f"Overall: {killed_all} of {total} mutants killed ({killed_all / max(total, 1):.0%}).",
         "",
         (
-            "The target is no survivor in the wire decoder, the recording writer and the matcher "
-            "(the script exits 1 otherwise). An estimator mutant that survives changes something "
-            "the fast tests do not pin down (a tuning weight, the quality figure's shape): named "
-            "here rather than hidden; the slow dataset tests are not part of this check."
+            "The target is no survivor (the script exits 1 otherwise); the slow dataset tests "
+            "are not part of this check."
         ),
         "",
         "<details><summary>Every mutant and the test that killed it</summary>",
@@ -648,7 +559,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument(
         "--only",
-        default="wire,recording,estimator,matcher",
+        default="wire,recording,matcher",
         help="comma-separated parts to mutate (default: %(default)s)",
     )
     parser.add_argument(
@@ -677,8 +588,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     _say(section)
     if args.write:
         write_section(args.write, section)
-    # The old estimator's survivors are reported only; every other part's fail the run.
-    target_missed = [r for r in results if not r.killed and r.mutant.group != "estimator"]
+    target_missed = [r for r in results if not r.killed]
     return 1 if target_missed else 0
 
 

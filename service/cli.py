@@ -15,7 +15,9 @@ log = logging.getLogger("mapping-service")
 
 # `service.core.slam.FRONT_ENDS` and `DEFAULT_FRONT_END` (its first), spelt out so that the CLI
 # and the benchmarks start without importing the core (tests/service/test_offline_cli.py checks).
-FRONT_END_CHOICES = ("matcher", "manhattan", "paper")
+FRONT_END_CHOICES = ("matcher", "paper")
+# The front ends a live session can run (`service.app.store.SESSION_FRONT_ENDS`).
+SERVE_FRONT_END_CHOICES = ("matcher",)
 DEFAULT_FRONT_END: Final = "matcher"
 
 
@@ -103,7 +105,6 @@ def build_parser() -> argparse.ArgumentParser:
         choices=FRONT_END_CHOICES,
         default=DEFAULT_FRONT_END,
         help="matcher: one scan-to-submap match with the walls' heading as a prior "
-        "(docs/matcher.md); manhattan: the older projection-histogram cascade "
         "(docs/estimator.md); paper: the IROS 2010 method as stated, no odometry "
         "(docs/paper-frontend.md) (default: %(default)s)",
     )
@@ -212,7 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p_serve.add_argument(
         "--front-end",
-        choices=("matcher", "manhattan"),
+        choices=SERVE_FRONT_END_CHOICES,
         default=None,
         help="the front end of new sessions, as `map --front-end` (or env MAPPING_FRONT_END; "
         "default: matcher); a session keeps the one it was created with",

@@ -24,7 +24,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Final
 
@@ -36,7 +36,6 @@ from clients.logs import LogError, LogInfo, iter_log_scans, probe_log
 from clients.wire import PoseFlag, Scan
 from service import mapio
 from service.bridge import scan_to_laser
-from service.core.frontend.params import EstimatorParams
 from service.core.maps.grid import GridImage
 from service.core.slam import (
     DEFAULT_FRONT_END,
@@ -98,7 +97,6 @@ def map_scans(
     *,
     resolution_m: float = 0.05,
     use_odometry: bool = True,
-    params: EstimatorParams | None = None,
     integrate_every: int = DEFAULT_INTEGRATE_EVERY,
     total: int | None = None,
     progress: bool = False,
@@ -115,17 +113,12 @@ def map_scans(
     keyframes; each drawn scan goes, at its front-end pose, into the map chunk of its stretch
     of travel, and the map is the chunks composed at their anchor nodes' finished poses.
     """
-    if params is None:
-        params = EstimatorParams(use_odometry=use_odometry)
-    elif params.use_odometry != use_odometry:
-        params = _replace_params(params, use_odometry=use_odometry)
     if slam_params is None:
         slam_params = SlamParams(loop_closure=loop_closure)
     elif slam_params.loop_closure != loop_closure:
         slam_params = replace(slam_params, loop_closure=loop_closure)
-    frontend = make_frontend(front_end, params, use_odometry=use_odometry)
+    frontend = make_frontend(front_end, use_odometry=use_odometry)
     slam = SlamSession(
-        params,
         slam_params,
         frontend,
         map_resolution_m=resolution_m,
@@ -169,12 +162,6 @@ def map_scans(
     run.wall_families_deg = [round(math.degrees(a), 2) for a in frontend.wall_families_rad]
     run.wall_s = time.perf_counter() - start
     return run
-
-
-def _replace_params(params: EstimatorParams, **changes: Any) -> EstimatorParams:
-    values = asdict(params)
-    values.update(changes)
-    return EstimatorParams(**values)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -221,7 +208,6 @@ def build_report(
     run: MapRun,
     *,
     input_info: dict[str, Any] | None = None,
-    params: EstimatorParams | None = None,
 ) -> dict[str, Any]:
     """The `report.json` content of a run."""
     quality: npt.NDArray[np.float64] = np.array([e.quality for e in run.estimates], dtype=float)
@@ -274,8 +260,6 @@ def build_report(
             "origin_m": [float(image.origin_x_m), float(image.origin_y_m)],
             "known_cells": int(np.count_nonzero(image.occupancy >= 0)),
         }
-    if params is not None and run.front_end == "manhattan":  # the cascade's parameters only
-        report["estimator_params"] = asdict(params)
     return report
 
 
@@ -284,7 +268,6 @@ def write_outputs(
     out_dir: str | Path,
     *,
     input_info: dict[str, Any] | None = None,
-    params: EstimatorParams | None = None,
 ) -> dict[str, Any]:
     """Write trajectory.tum, trajectory_covariance.csv, map.png, map.pgm, map.yaml and
     report.json; return the report."""
@@ -292,7 +275,7 @@ def write_outputs(
     if run.image is None:
         raise OfflineError("the run has no map")
     image = run.image
-    report = build_report(run, input_info=input_info, params=params)
+    report = build_report(run, input_info=input_info)
     try:
         out.mkdir(parents=True, exist_ok=True)
         _write_text(out / "trajectory.tum", mapio.format_tum(run.stamps_ns, run.poses))
@@ -413,13 +396,11 @@ def run_map(args: argparse.Namespace) -> int:
             odom_topic=args.odom_topic,
             use_odom=use_odometry,
         )
-        params = EstimatorParams(use_odometry=use_odometry)
         show_progress = not args.no_progress and sys.stderr.isatty()
         run = map_scans(
             scans,
             resolution_m=resolution_m,
             use_odometry=use_odometry,
-            params=params,
             total=info.scan_count,
             progress=show_progress,
             loop_closure=not args.no_loop_closure,
@@ -435,7 +416,7 @@ def run_map(args: argparse.Namespace) -> int:
         info, scan_topic=args.scan_topic, odom_topic=args.odom_topic, use_odometry=use_odometry
     )
     try:
-        report = write_outputs(run, args.out, input_info=summary, params=params)
+        report = write_outputs(run, args.out, input_info=summary)
     except OfflineError as err:
         _fail(str(err))
         return EXIT_OUTPUT

@@ -58,7 +58,6 @@ import numpy as np
 from clients.recording import RecordingReport, RecordingWriter
 from clients.wire import Pose, PoseFlag, Scan, decode_scan, encode_pose
 from service.app import statecodec
-from service.core.frontend.params import EstimatorParams
 from service.core.frontend.scan_matcher import warm_up
 from service.core.maps.grid import GridImage
 from service.core.slam import (
@@ -102,9 +101,9 @@ class Engine:
     (`SlamSession`, the one `mapping-service map` runs). Picklable by reference when its
     functions are module-level ones, as mapper processes need."""
 
-    # The front end of new sessions by name (`service.core.slam.make_frontend`): "matcher"
-    # (the default) or "manhattan". A session keeps its own (`SessionMeta.front_end`): each
-    # mapper is made with the session's name, this one only when none is given.
+    # The front end of new sessions by name (`service.core.slam.make_frontend`): "matcher",
+    # the one live front end. A session keeps its own (`SessionMeta.front_end`): each mapper is
+    # made with the session's name, this one only when none is given.
     front_end: FrontEndName = DEFAULT_FRONT_END
     # The back end (loop closure, pose graph) beside the front end, in a background thread
     # (service/app/backend.py); False: the front end and its map alone.
@@ -263,10 +262,8 @@ class LocalMapper:
         if engine.make_estimator is not None:
             frontend = engine.make_estimator(self._use_odometry)
         else:
-            params = EstimatorParams(use_odometry=self._use_odometry)
-            frontend = make_frontend(self._front_end, params, use_odometry=self._use_odometry)
+            frontend = make_frontend(self._front_end, use_odometry=self._use_odometry)
         return SlamSession(
-            None,
             SlamParams(loop_closure=engine.loop_closure),
             frontend,
             map_resolution_m=self._resolution_m,

@@ -74,7 +74,6 @@ from service.app.mapper import (
     make_pose,
 )
 from service.app.store import (
-    LEGACY_FRONT_END,
     DataDir,
     MapStore,
     SavedMapMeta,
@@ -244,7 +243,7 @@ class MappingSession:
             state="stopped",
             resolution_m=0.05,
             use_odometry=True,
-            front_end=LEGACY_FRONT_END,  # never mapped into
+            front_end="matcher",  # never mapped into
         )
         session = cls(SessionStore(directory, meta, fsync_each=False), make_mapper)
         session._broken = True
@@ -733,8 +732,20 @@ class MappingSession:
         mapper = self._new_mapper()
         segments = self._store.segments()
         header: ckpt.CheckpointHeader | None = None
+        retired = self._store.meta.retired_front_end
+        if retired is not None:
+            # Its checkpoints hold a deleted front end's state: never loaded, the whole
+            # recording is replayed with this one (`retire_front_end` below, once it is).
+            log.warning(
+                "session %s: recorded with the front end %r, which this version no longer "
+                "has; restored with %r by replaying its whole recording (its checkpoints hold "
+                "the old front end's state and are deleted)",
+                self.id,
+                retired,
+                self.front_end,
+            )
         # Every checkpoint is checked (two files), so that a damaged fallback is reported too.
-        for candidate, state in list(self._checkpoints()):
+        for candidate, state in [] if retired is not None else list(self._checkpoints()):
             if header is not None:
                 break
             if not segments or candidate.segment > segments[-1].index:
@@ -844,7 +855,10 @@ class MappingSession:
                 self._store.append(encode_pose(pending))
                 self._records_tail += 1
         self._checkpoint_scans = header.scans_accepted if header is not None else 0
-        if mismatches or undecodable:
+        if retired is not None:
+            self._store.retire_front_end()  # once: the next start restores it as any other
+        # Another front end's recorded poses differ from the replay's: expected, not news.
+        if (mismatches and retired is None) or undecodable:
             log.warning(
                 "session %s: replay found %d pose mismatches and %d unreadable records",
                 self.id,

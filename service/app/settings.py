@@ -113,9 +113,8 @@ class IngestSettings(_Frozen):
     # The front end of every new session's core (`service.core.slam.make_frontend`), as
     # `mapping-service map --front-end`. A session keeps the one it was created with (its
     # `session.json`), so a restart with another setting restores it as it was.
-    front_end: Literal["matcher", "manhattan"] = Field(
-        default="matcher",
-        description="front end of new sessions: matcher (default) or manhattan (the older cascade)",
+    front_end: Literal["matcher"] = Field(
+        default="matcher", description="front end of new sessions: matcher (the only live one)"
     )
     # With mapper processes: each process subscribes to its share of the scan keys itself and
     # runs the whole per-scan path (decode, validate, record, map, publish); the service's

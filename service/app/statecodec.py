@@ -10,7 +10,7 @@ those types needs no format change.
 `decode(data, allowed_modules)` rebuilds the graph: classes are looked up by name only inside
 the allowed modules and made with `cls.__new__` (no `__init__`, no `__reduce__` callables), then
 given their state as pickle would (`__setstate__` if the class has one, else attribute by
-attribute), so existing compatibility hooks (`ManhattanEstimator.__setstate__`) keep working.
+attribute), so existing compatibility hooks (`ScanMatcherFrontEnd.__setstate__`) keep working.
 Shared references and cycles are kept, as pickle keeps them.
 
 The bytes are an `.npz` (zip, deflate-compressed): `tree.json` plus one `.npy` per array, read

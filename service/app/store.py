@@ -50,11 +50,15 @@ log = logging.getLogger(__name__)
 META_FORMAT: Final = 1
 # The front ends a session can be created with (`service.core.slam.FRONT_ENDS` less the
 # offline-only "paper"), as `session.json` names them.
-SessionFrontEnd = Literal["matcher", "manhattan"]
-SESSION_FRONT_ENDS: Final[tuple[SessionFrontEnd, ...]] = ("matcher", "manhattan")
+SessionFrontEnd = Literal["matcher"]
+SESSION_FRONT_ENDS: Final[tuple[SessionFrontEnd, ...]] = ("matcher",)
+# Front ends a `session.json` may name that this version no longer has: "manhattan", the
+# projection cascade, deleted when the matcher replaced it. Such a session is restored with the
+# matcher from its whole recording (`SessionMeta.retired_front_end`).
+RETIRED_FRONT_ENDS: Final = ("manhattan",)
 # The front end of a `session.json` that names none: one written before sessions recorded theirs,
 # when every session's was the service's setting, by default "manhattan".
-LEGACY_FRONT_END: Final[SessionFrontEnd] = "manhattan"
+LEGACY_FRONT_END: Final = "manhattan"
 
 
 def session_front_end(name: object) -> SessionFrontEnd:
@@ -154,17 +158,29 @@ class SessionMeta:
     front_end: SessionFrontEnd
     epoch: int = 0
     format: int = META_FORMAT
+    # The retired front end (`RETIRED_FRONT_ENDS`) `session.json` names, or `LEGACY_FRONT_END`
+    # when it names none; None for a session of a live front end. Such a session runs
+    # `front_end` (the matcher); its checkpoints hold the retired one's state, so its restore
+    # replays the whole recording and then clears this (`SessionStore.retire_front_end`).
+    # Written as `front_end` until then, so a crash before it leaves the session as it was.
+    retired_front_end: str | None = None
 
     def to_json(self) -> bytes:
-        return json.dumps(asdict(self), indent=1).encode()
+        obj = asdict(self)
+        retired = obj.pop("retired_front_end")
+        if retired is not None:
+            obj["front_end"] = retired
+        return json.dumps(obj, indent=1).encode()
 
     @classmethod
     def from_json(cls, data: bytes) -> SessionMeta:
         obj: Any = json.loads(data)
         if not isinstance(obj, dict) or obj.get("format") != META_FORMAT:
             raise StoreError("session.json has an unknown format")
+        named = obj.get("front_end", LEGACY_FRONT_END)
+        retired = named if named in RETIRED_FRONT_ENDS else None
         try:
-            front_end = session_front_end(obj.get("front_end", LEGACY_FRONT_END))
+            front_end = session_front_end("matcher" if retired is not None else named)
         except ValueError:
             raise StoreError(
                 f"session.json names an unknown front end {obj['front_end']!r}"
@@ -178,6 +194,7 @@ class SessionMeta:
             use_odometry=bool(obj["use_odometry"]),
             front_end=front_end,
             epoch=int(obj["epoch"]),
+            retired_front_end=retired,
         )
         if SESSION_ID_PATTERN.fullmatch(meta.id) is None:
             raise StoreError(f"unsafe session id {meta.id!r}")
@@ -445,6 +462,21 @@ class SessionStore:
 
     def set_state(self, state: SessionState) -> None:
         self.meta = replace(self.meta, state=state)
+        write_atomic(self.directory / "session.json", self.meta.to_json())
+
+    def retire_front_end(self) -> None:
+        """After a session of a retired front end was restored with `meta.front_end` from its
+        recording: delete its checkpoints and their array pack (the retired front end's state,
+        never loadable), then name the live front end in `session.json`, so the next start
+        restores it as any other session. A crash between the two leaves a session without
+        checkpoints, restored the same way again."""
+        if self.meta.retired_front_end is None:
+            return
+        for _, path in self.checkpoint_paths():
+            path.unlink(missing_ok=True)
+        self.pack_path.unlink(missing_ok=True)
+        _fsync_dir(self.directory)
+        self.meta = replace(self.meta, retired_front_end=None)
         write_atomic(self.directory / "session.json", self.meta.to_json())
 
     def roll(self) -> int:

@@ -32,9 +32,7 @@ import numpy as np
 from clients.wire import PoseFlag
 from service.core.backend.loops import LoopParams, LoopResult, verify, window_m
 from service.core.backend.params import GraphParams, rotate_covariance
-from service.core.frontend.estimator import ManhattanEstimator
 from service.core.frontend.paper import PaperFrontEnd
-from service.core.frontend.params import EstimatorParams
 from service.core.frontend.scan_matcher import MatcherParams, ScanMatcherFrontEnd
 from service.core.maps.composed import ChunkedMap
 from service.core.maps.grid import GridImage, OccupancyGrid
@@ -323,9 +321,9 @@ class SlamBackend:
         return self.graph.estimate(node).compose(self.node_frontend[node].inverse())
 
 
-FrontEndName = Literal["matcher", "manhattan", "paper"]
+FrontEndName = Literal["matcher", "paper"]
 # The default first (`mapping-service map --front-end`, the service's `front_end` setting).
-FRONT_ENDS: tuple[FrontEndName, ...] = ("matcher", "manhattan", "paper")
+FRONT_ENDS: tuple[FrontEndName, ...] = ("matcher", "paper")
 DEFAULT_FRONT_END: FrontEndName = FRONT_ENDS[0]
 
 
@@ -338,22 +336,17 @@ class Tracker(Protocol):
 
 
 class FrontEnd(Tracker, Protocol):
-    """A front end of ours (`ManhattanEstimator`, `ScanMatcherFrontEnd`)."""
+    """A front end of ours (`ScanMatcherFrontEnd`, `PaperFrontEnd`)."""
 
     @property
     def wall_families_rad(self) -> tuple[float, ...]: ...
 
 
-def make_frontend(
-    name: FrontEndName, estimator_params: EstimatorParams | None = None, use_odometry: bool = True
-) -> FrontEnd:
+def make_frontend(name: FrontEndName = DEFAULT_FRONT_END, use_odometry: bool = True) -> FrontEnd:
     """The named front end: "matcher" (one scan-to-submap match, `frontend.scan_matcher`: the
-    default, `DEFAULT_FRONT_END`), "manhattan" (the older projection cascade, which alone reads
-    `estimator_params`) or "paper" (offline only)."""
+    default, `DEFAULT_FRONT_END`) or "paper" (the IROS 2010 method, offline only)."""
     if name == "matcher":
         return ScanMatcherFrontEnd(MatcherParams(use_odometry=use_odometry))
-    if name == "manhattan":
-        return ManhattanEstimator(estimator_params)
     if name == "paper":
         return PaperFrontEnd()  # the IROS 2010 method as stated: no odometry (`frontend.paper`)
     raise ValueError(f"unknown front end {name!r}; use one of {', '.join(FRONT_ENDS)}")
@@ -386,14 +379,12 @@ class SlamSession:
 
     `map_resolution_m` None: no map (the back end alone, as benchmarks use it);
     `keep_trajectory` False: no per-scan record (the live service records its poses itself);
-    `frontend` None: the cascade (`ManhattanEstimator(estimator_params)`), as the back end's
-    tests and benchmarks use it; the service and `mapping-service map` pass theirs by name
-    (`make_frontend`, the matcher by default).
+    `frontend` None: the default front end (`make_frontend()`, the matcher); the service and
+    `mapping-service map` pass theirs by name (`make_frontend`).
     """
 
     def __init__(
         self,
-        estimator_params: EstimatorParams | None = None,
         params: SlamParams | None = None,
         frontend: Tracker | None = None,
         *,
@@ -402,9 +393,7 @@ class SlamSession:
         keep_trajectory: bool = True,
     ) -> None:
         self.params = params if params is not None else SlamParams()
-        self.frontend: Tracker = (
-            frontend if frontend is not None else ManhattanEstimator(estimator_params)
-        )
+        self.frontend: Tracker = frontend if frontend is not None else make_frontend()
         self.backend = SlamBackend(self.params)
         self.integrate_every = int(integrate_every)
         self.map_resolution_m = map_resolution_m

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any, NamedTuple, TypeVar
 
@@ -47,15 +46,6 @@ class Pose2D(NamedTuple):
         return self.inverse().compose(other)
 
 
-def column_bounds(points: npt.NDArray[Any]) -> tuple[float, float, float, float]:
-    """(x_min, y_min, x_max, y_max) of an (N, 2) array, N > 0.
-
-    Column by column: numpy's `min(axis=0)` over two columns is ~12x slower (measured, numpy 2.4).
-    """
-    x, y = points[:, 0], points[:, 1]
-    return float(x.min()), float(y.min()), float(x.max()), float(y.max())
-
-
 ArrayT = TypeVar("ArrayT", bound="np.ndarray[Any, Any]")
 
 
@@ -71,12 +61,6 @@ def frozen_array(values: ArrayT) -> ArrayT:
     return out
 
 
-def rotate_point(x_m: float, y_m: float, theta_rad: float) -> tuple[float, float]:
-    """One point rotated counter-clockwise by theta about the origin (`rotate_points`)."""
-    c, s = math.cos(theta_rad), math.sin(theta_rad)
-    return c * x_m - s * y_m, s * x_m + c * y_m
-
-
 def rotate_points(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
     """(N, 2) points rotated counter-clockwise by theta about the origin."""
     c, s = math.cos(theta_rad), math.sin(theta_rad)
@@ -86,20 +70,8 @@ def rotate_points(points_xy_m: FloatArray, theta_rad: float) -> FloatArray:
     return out
 
 
-def convolve_valid(values: FloatArray, kernel: FloatArray) -> FloatArray:
-    """`np.convolve(values, kernel, mode="valid")` without BLAS.
-
-    `np.convolve` sums through the BLAS dot product, whose kernels differ in the last bits
-    (`OPENBLAS_CORETYPE`): a tie between two peaks then breaks one way or the other. Products
-    and sums of ufuncs round the same with every kernel.
-    """
-    windows = np.lib.stride_tricks.sliding_window_view(values, kernel.shape[0])
-    return np.asarray((windows * kernel[::-1]).sum(axis=1), dtype=np.float64)
-
-
 # Small products and solves in closed form, not through BLAS or LAPACK: their kernels differ in
-# the last bits (`OPENBLAS_CORETYPE`), and a gate or a tie downstream must not (see
-# `convolve_valid`).
+# the last bits (`OPENBLAS_CORETYPE`), and a gate or a tie downstream must not.
 
 
 def matmul_exact(a: FloatArray, b: FloatArray) -> FloatArray:
@@ -124,12 +96,6 @@ def fields_by_name(obj: Any) -> dict[str, object]:
     """A dataclass's fields by name: what it pickles as, so that a checkpoint keeps its values
     when a later version adds fields (the dataclass default pickles by position)."""
     return {f.name: getattr(obj, f.name) for f in fields(obj)}
-
-
-def restore_fields(obj: Any, values: Mapping[str, object], defaults: Any) -> None:
-    """Set each field of the (frozen) dataclass `obj` from `values`, else from `defaults`."""
-    for f in fields(obj):
-        object.__setattr__(obj, f.name, values.get(f.name, getattr(defaults, f.name)))
 
 
 def parabolic_offset(y_minus: float, y0: float, y_plus: float) -> float:

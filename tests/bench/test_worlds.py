@@ -207,7 +207,8 @@ def test_doc_section_is_one_keep_block_replaced_in_place(tmp_path: Path) -> None
     assert "### Test set, front end alone" in first
     assert "commit `abc`" in first
     assert "<!-- keep:other -->" in first
-    # A run that names no front end predates the choice: the cascade's, not the default's.
+    # A result file that names no front end predates the choice: the (deleted) cascade's, not
+    # the default's.
     assert "The front end (`manhattan`) on" in first
     assert "test: `manhattan`, load 3.0" in first
     (out / "test.md").write_text("### Test set, front end alone\n\n| new table |")

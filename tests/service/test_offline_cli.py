@@ -205,11 +205,13 @@ def test_map_with_another_front_end(
 def test_the_front_end_choices_are_the_cores() -> None:
     """The CLI spells the front ends and the default out (it starts without importing the
     core): the same, the default first."""
-    from service.cli import DEFAULT_FRONT_END, FRONT_END_CHOICES
+    from service.app import store
+    from service.cli import DEFAULT_FRONT_END, FRONT_END_CHOICES, SERVE_FRONT_END_CHOICES
     from service.core import slam
 
     assert FRONT_END_CHOICES == slam.FRONT_ENDS
     assert DEFAULT_FRONT_END == slam.DEFAULT_FRONT_END == slam.FRONT_ENDS[0] == "matcher"
+    assert SERVE_FRONT_END_CHOICES == store.SESSION_FRONT_ENDS
 
 
 def _assert_one_line_error(result: subprocess.CompletedProcess[str]) -> None:

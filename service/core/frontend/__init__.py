@@ -1,8 +1,8 @@
-"""The front end: per-scan pose tracking from the walls (the paper's method, made robust).
+"""The front ends: per-scan pose tracking.
 
-Steps, one module each: `heading` (projection histograms, paper §II), `rotation` (direction
-spectra), `translation` and `gated` (1-D histogram correlation, paper §III), `refine` (the joint
-2-D check), `profile` (turns from the range profile), `covariance` (what the match says about its
-own uncertainty). `estimator.ManhattanEstimator` composes them; `params.EstimatorParams` holds the
-paper's parameters as named defaults.
+`scan_matcher.ScanMatcherFrontEnd` (the default, "matcher") predicts, matches each scan against
+the active submap in one objective (`matcher`: a correlative search, `search`, over the
+likelihood grid, `likelihood`, then Gauss-Newton), with the walls' heading (`walls`, measured by
+`heading`) and the motion as priors. `paper.PaperFrontEnd` ("paper") is the IROS 2010 method as
+stated, the benchmarks' comparator. `kernels` holds the compiled inner loops.
 """

@@ -688,3 +688,35 @@ def hard_energies(
             hist[i] += 1
         energy[col] = e
     return energy[:k] + energy[k:]
+
+
+@_jit
+def soft_histograms(points_xy_m: FloatArray, columns: FloatArray) -> tuple[FloatArray, int]:
+    """`heading.heading_scores`' soft histograms, (2K, width), and the width: each coordinate
+    x·c₀ + y·c₁ (a column of `heading._rotation_columns`, in bin units), shifted by the bins
+    below the smallest, split between its bin and the next by its fraction. The sums run in
+    numpy's `bincount` order (point by point, each point's columns in turn), the two halves
+    apart and then added, as `heading._soft_counts` does: the same bits."""
+    m_n = points_xy_m.shape[0]
+    n_cols = columns.shape[1]
+    lowest = math.inf
+    highest = -math.inf
+    for p in range(m_n):
+        for col in range(n_cols):
+            v = points_xy_m[p, 0] * columns[0, col] + points_xy_m[p, 1] * columns[1, col]
+            lowest = min(lowest, v)
+            highest = max(highest, v)
+    lo = math.floor(lowest) - 1
+    width = math.ceil(highest) - lo + 2
+    below = np.zeros((n_cols, width))
+    above = np.zeros((n_cols, width))
+    for p in range(m_n):
+        for col in range(n_cols):
+            a = points_xy_m[p, 0] * columns[0, col]
+            b = points_xy_m[p, 1] * columns[1, col]
+            v = (a + b) - lo
+            i = int(v)
+            frac = v - math.floor(v)
+            below[col, i] += 1.0 - frac
+            above[col, i + 1] += frac
+    return below + above, width

@@ -61,7 +61,7 @@ class MatchOptions:
     refine_iterations: int = 12
     # A Gauss-Newton step that raises the cost is halved at most this many times before the
     # refine stops; each halving is one more evaluation of the scan. 2 is 10 % faster per scan
-    # but Intel's local rotation error grows (docs/matcher.md, "Speed"): 6 is kept.
+    # but Intel's local rotation error grows (docs/estimator.md, "Speed"): 6 is kept.
     refine_halvings: int = 6
     wall_huber: float = 2.0  # the wall prior's residual is linear beyond this many σ
     # The motion prior is a mixture: the prediction's Gaussian, or, at this cost (-2 ln of its

@@ -38,7 +38,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from clients.wire import PoseFlag
-from service.core.frontend.heading import thin_points
 from service.core.types import (
     ZERO_COVARIANCE,
     FloatArray,
@@ -53,6 +52,24 @@ log = logging.getLogger(__name__)
 
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))  # 2.3548
 _ANGLE_CHUNK = 200  # hmax(θ) for this many angles at a time (bounded memory)
+
+
+def thin_points(points_xy_m: FloatArray, spacing_m: float) -> FloatArray:
+    """Keep points so that consecutive kept points are roughly `spacing_m` apart (vectorised).
+
+    Walks the scan in beam order: a point is kept each time the cumulative path length along
+    the scan crosses a multiple of `spacing_m` (a range jump always starts a new point).
+    """
+    n = points_xy_m.shape[0]
+    if n < 2 or spacing_m <= 0.0:
+        return points_xy_m
+    steps = np.hypot(*np.diff(points_xy_m, axis=0).T)
+    cell = np.floor(np.concatenate(([0.0], np.cumsum(steps))) / spacing_m)
+    keep = np.empty(n, dtype=bool)
+    keep[0] = True
+    keep[1:] = cell[1:] != cell[:-1]
+    # `take` of indices: (n, 2) boolean indexing is ~10x slower.
+    return points_xy_m.take(np.flatnonzero(keep), axis=0)
 
 
 @dataclass(frozen=True, slots=True)

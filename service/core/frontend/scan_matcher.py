@@ -81,6 +81,12 @@ class MatcherParams:
     # ... scaled by how far the matches have disagreed with it, over about this many scans (a
     # robot's odometry is as good as its wheels and floor, not as the defaults above guess)
     odometry_noise_memory_scans: int = 50
+    # Wheels of unequal size turn the odometry's heading by a bias per metre (Borenstein's
+    # UMBmark). Held tight against the walls' prior, a biased heading would win scan by scan;
+    # the bias is estimated from the matches' heading innovations (a scalar Kalman filter) and
+    # taken off the odometry. Its prior σ (0: not estimated) and random walk, per metre:
+    odometry_heading_bias_sigma_deg_per_m: float = 1.0
+    odometry_heading_bias_walk_deg_per_m: float = 0.01
     # --- match and walls
     match: MatchOptions = field(default_factory=MatchOptions)
     walls: WallOptions = field(default_factory=WallOptions)
@@ -117,6 +123,8 @@ class MatcherState:
     cov_since_keyframe: FloatArray
     walls: WallState
     stats: FrontEndStats
+    # (bias in rad per metre of odometry travel, its variance): `_learn_odometry_bias`
+    odom_heading_bias: tuple[float, float] = (0.0, 0.0)
 
 
 def surface_points(
@@ -179,6 +187,8 @@ class ScanMatcherFrontEnd:
         self._pose_cov = np.zeros((3, 3))
         self._odom: Pose2D | None = None
         self._odom_noise_scale2 = np.ones(2)
+        bias_sigma = math.radians(self.params.odometry_heading_bias_sigma_deg_per_m)
+        self._odom_heading_bias = (0.0, bias_sigma * bias_sigma)
         self._submaps: list[LikelihoodGrid] = []
         self._keyframe_pose: Pose2D | None = None
         self._cov_since_keyframe = np.zeros((3, 3))
@@ -205,6 +215,7 @@ class ScanMatcherFrontEnd:
             self._cov_since_keyframe,
             self._walls,
             self.stats,
+            self._odom_heading_bias,
         )
 
     def __getstate__(self) -> dict[str, object]:
@@ -227,6 +238,9 @@ class ScanMatcherFrontEnd:
             state.cov_since_keyframe,
         )
         self._walls, self.stats = state.walls, state.stats
+        # (a state saved before the bias was estimated starts from its prior)
+        bias_sigma = math.radians(self.params.odometry_heading_bias_sigma_deg_per_m)
+        self._odom_heading_bias = getattr(state, "odom_heading_bias", (0.0, bias_sigma**2))
 
     # ------------------------------------------------------------------ public
     def process(self, scan: LaserScan) -> PoseEstimate:
@@ -277,6 +291,7 @@ class ScanMatcherFrontEnd:
         pose = self._pose if self._pose is not None else Pose2D(0.0, 0.0, 0.0)
         delta = self._odom.between(odom)
         dist = math.hypot(delta.x_m, delta.y_m)
+        delta = Pose2D(delta.x_m, delta.y_m, delta.theta_rad - self._odom_heading_bias[0] * dist)
         sig_xy = p.position_floor_m + p.odometry_sigma_ratio * dist
         sig_t = math.radians(p.heading_floor_deg) + p.odometry_sigma_ratio * abs(delta.theta_rad)
         scale = np.sqrt(np.maximum(self._odom_noise_scale2, 1.0))
@@ -313,6 +328,7 @@ class ScanMatcherFrontEnd:
         if pts.shape[0] < p.min_points:
             return self._degenerate(scan, predicted, cov_pred, flags)
         wall_meas = measure(pts, p.walls) if p.wall_prior else None
+        odometry_won = False  # the match kept odometry's component of the motion prior
         if self._pose is None:  # the first scan defines the map frame
             pose, h_scan, score = Pose2D(0.0, 0.0, 0.0), np.eye(3) * 1e6, 1.0
         else:
@@ -325,6 +341,9 @@ class ScanMatcherFrontEnd:
             priors = Priors(predicted, cov_pred, wall_rad, wall_sigma, second)
             result = match(self._submaps[0], pts, priors, p.match)
             pose, h_scan, score = result.pose, result.scan_information, result.score
+            odometry_won = bool(flags & PoseFlag.ODOMETRY_PRIOR) and not (
+                result.second or result.broad
+            )
             if result.second and second is not None:
                 cov_pred = second[1]
             if result.broad:
@@ -349,11 +368,15 @@ class ScanMatcherFrontEnd:
         learnt = PoseFlag.ODOMETRY_PRIOR | PoseFlag.RELOCALISED
         if flags & learnt == PoseFlag.ODOMETRY_PRIOR and self._pose is not None:
             self._learn_odometry_noise(pose, predicted, predicted_cov)  # odometry's prediction
+        if odometry_won and scan.odom is not None and self._odom is not None:
+            self._learn_odometry_bias(self._odom.between(scan.odom), pose, predicted, predicted_cov)
         # The covariance relative to the latest keyframe: a Kalman step of the motion since it.
         prior_cov = self._cov_since_keyframe + cov_pred
         cov = np.linalg.inv(np.linalg.inv(prior_cov) + h_scan)
         cov = 0.5 * (cov + cov.T)
-        self._update_motion(scan, pose, h_scan, cov_pred)
+        self._update_motion(
+            scan, pose, h_scan, cov_pred, predicted.theta_rad if odometry_won else None
+        )
         keyframe = self._is_keyframe(pose)
         if keyframe:
             self._insert(scan, returns, pose)
@@ -408,6 +431,31 @@ class ScanMatcherFrontEnd:
             measured, 100.0
         )
 
+    def _learn_odometry_bias(
+        self, odom_delta: Pose2D, pose: Pose2D, predicted: Pose2D, cov_pred: FloatArray
+    ) -> None:
+        """A Kalman step of the odometry's heading bias per metre: the matched heading minus
+        odometry's (bias taken off) says what the bias still owes, over the distance odometry
+        travelled, as sure as odometry's σ_θ over that distance, and at most 3σ of it. (The
+        match is pulled towards odometry, so this says less than the bias owes; the estimate
+        keeps integrating what is left until the innovations centre on zero.)"""
+        p = self.params
+        if p.odometry_heading_bias_sigma_deg_per_m <= 0.0:
+            return
+        dist = math.hypot(odom_delta.x_m, odom_delta.y_m)
+        if dist < 1e-3:  # a turn in place says nothing about a bias per metre
+            return
+        bias, var = self._odom_heading_bias
+        var += math.radians(p.odometry_heading_bias_walk_deg_per_m) ** 2 * dist
+        owed = -predicted.between(pose).theta_rad / dist
+        noise = cov_pred[2, 2] / (dist * dist)
+        reach = 3.0 * math.sqrt(var + noise)
+        gain = var / (var + noise)
+        self._odom_heading_bias = (
+            bias + gain * min(max(owed, -reach), reach),
+            (1.0 - gain) * var,
+        )
+
     def _velocity_noise(self, gap_s: float) -> FloatArray:
         p = self.params
         fwd, lat = p.forward_accel_sigma_m_s2 * gap_s, p.lateral_accel_sigma_m_s2 * gap_s
@@ -415,7 +463,12 @@ class ScanMatcherFrontEnd:
         return np.diag([fwd * fwd, lat * lat, alpha * alpha])
 
     def _update_motion(
-        self, scan: LaserScan, pose: Pose2D, h_scan: FloatArray, cov_pred: FloatArray
+        self,
+        scan: LaserScan,
+        pose: Pose2D,
+        h_scan: FloatArray,
+        cov_pred: FloatArray,
+        odometry_theta_rad: float | None = None,
     ) -> None:
         """Kalman step of the velocity: the motion since the previous step, over at least
         `velocity_window_s` (real logs hold scans 1 ms apart, over which a match's noise would
@@ -424,7 +477,8 @@ class ScanMatcherFrontEnd:
         match does not become a speed); and where a door pins the pose again after a plain
         stretch, the correction says where the robot is, not how fast it went (the anchor's
         position along the corridor was loose). A heading the match corrected, beyond the turn
-        the velocity predicted, says where the robot faces, not that its motion turned: the
+        the prediction made (odometry's, `odometry_theta_rad`, when odometry predicted the scan;
+        else the velocity's), says where the robot faces, not that its motion turned: the
         velocity (robot frame) is turned back by the correction, so that its direction in the
         map is kept."""
         p = self.params
@@ -452,7 +506,11 @@ class ScanMatcherFrontEnd:
             self._velocity_anchor = (pose, scan.stamp_ns, self._pose_cov)
         if self._pose is not None and anchor is not None:
             t = min(max(gap_s, 0.0), p.max_extrapolation_s)
-            predicted_theta_rad = self._pose.theta_rad + turn_rate_rad_s * t
+            predicted_theta_rad = (
+                self._pose.theta_rad + turn_rate_rad_s * t
+                if odometry_theta_rad is None
+                else odometry_theta_rad
+            )
             correction = math.remainder(pose.theta_rad - predicted_theta_rad, 2 * math.pi)
             c, s = math.cos(correction), math.sin(correction)
             vx, vy, omega = self._velocity

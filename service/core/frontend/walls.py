@@ -56,12 +56,7 @@ def measure(points_xy_m: FloatArray, opts: WallOptions) -> WallMeasurement | Non
     if points_xy_m.shape[0] < 10:
         return None
     m = measure_heading(
-        points_xy_m,
-        None,
-        0.0,
-        math.radians(opts.step_deg),
-        opts.bin_m,
-        max_range_m=opts.max_range_m,
+        points_xy_m, math.radians(opts.step_deg), opts.bin_m, max_range_m=opts.max_range_m
     )
     span = opts.full_peak_fraction - opts.min_peak_fraction
     weight = min(max((m.peak_fraction - opts.min_peak_fraction) / span, 0.0), 1.0)
@@ -88,9 +83,9 @@ def heading_prior(
     k = family_of(state, predicted_rad - meas.angle_rad, opts)
     if k is None:
         return None, math.inf
-    manhattan = state.families_rad[k] + meas.angle_rad
-    turns = round((predicted_rad - manhattan) / QUARTER)
-    return manhattan + turns * QUARTER, math.radians(opts.sigma_deg) / math.sqrt(meas.weight)
+    walls_rad = state.families_rad[k] + meas.angle_rad
+    turns = round((predicted_rad - walls_rad) / QUARTER)
+    return walls_rad + turns * QUARTER, math.radians(opts.sigma_deg) / math.sqrt(meas.weight)
 
 
 def observe(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import logging
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,7 @@ from clients.wire import Pose, Scan
 from service.app import checkpoint, statecodec
 from service.app.errors import StoreError
 from service.app.sessions import MappingSession, SessionInfo
+from service.app.store import SessionMeta
 
 
 def recording_of(session: MappingSession) -> Path:
@@ -206,25 +208,43 @@ def test_restart_from_checkpoint_replays_only_the_tail(
 
 
 @MAPPERS
-def test_a_session_keeps_its_front_end_when_the_setting_changes(
-    tmp_path: Path, runtime_factory: RuntimeFactory, monkeypatch: pytest.MonkeyPatch, mappers: int
+@pytest.mark.parametrize("named", ["manhattan", None], ids=["manhattan", "none"])
+def test_a_session_of_the_deleted_cascade_restores_with_the_matcher(
+    tmp_path: Path,
+    runtime_factory: RuntimeFactory,
+    *,
+    monkeypatch: pytest.MonkeyPatch,
+    caplog: pytest.LogCaptureFixture,
+    mappers: int,
+    named: str | None,
 ) -> None:
-    """A session runs the front end it was created with (its `session.json`): a restart with
-    another `front_end` setting restores its checkpoint with that one (not rejected, nothing
-    re-estimated); new sessions take the setting. A `session.json` naming none was written
-    before sessions kept theirs, when every session ran the default then, the cascade: it
-    restores as `manhattan`, not as today's default."""
+    """A `session.json` naming the deleted front end "manhattan", or naming none (written when
+    the cascade was every session's), restores with the matcher: its checkpoints hold the
+    cascade's state, so they are never loaded (by the session's recorded front end, not by a
+    failure to decode: here they would load, or not even decode) and every recorded scan is
+    re-estimated. Nothing is lost or counted as damage; one WARNING says why; `session.json`
+    then names the matcher and the old checkpoints are gone, so the next start restores it as
+    any other session, from a checkpoint of its own."""
     monkeypatch.setattr(MappingSession, "checkpoint_every_scans", 10)
     data = tmp_path / "data"
-    first = runtime_factory(data, mapper_processes=mappers, front_end="manhattan")
+    first = runtime_factory(data, mapper_processes=mappers)
     session = first.sessions.create("r1", 0.05, True)
-    assert session.front_end == "manhattan"
-    robot = SimRobot("r1")
-    feed(first, robot, 20)  # checkpoints at scans 10 and 20
+    feed(first, SimRobot("r1"), 20)  # checkpoints at scans 10 and 20
     expected = seen(session)
     first.close()
-    meta_path = data / "sessions" / session.id / "session.json"
-    assert json.loads(meta_path.read_bytes())["front_end"] == "manhattan"
+    folder = data / "sessions" / session.id
+    meta_path = folder / "session.json"
+    meta = json.loads(meta_path.read_bytes())
+    if named is None:
+        del meta["front_end"]
+        # The checkpoints pass their checksum, but their state is none of ours.
+        for path in folder.glob("checkpoint-*.mck"):
+            header, _ = checkpoint.read(path)
+            path.write_bytes(checkpoint.encode(header, b"the cascade's state"))
+    else:
+        meta["front_end"] = named
+    meta_path.write_text(json.dumps(meta))
+    assert list(folder.glob("checkpoint-*.mck"))
 
     estimated: list[str] = []  # the sessions of the scans re-estimated
     original = MappingSession._estimate
@@ -234,36 +254,56 @@ def test_a_session_keeps_its_front_end_when_the_setting_changes(
         return original(self, scan)
 
     monkeypatch.setattr(MappingSession, "_estimate", counting)
+    caplog.set_level(logging.WARNING, logger="service.app.sessions")
+    second = runtime_factory(data, mapper_processes=mappers)
+    restored = second.sessions.get(session.id)
+    assert restored.front_end == "matcher"
+    assert restored.status == "ok", restored.damage
+    assert restored.damage.checkpoints_rejected == 0
+    assert estimated.count(session.id) == 20  # every scan of the recording, none from a state
+    assert_same_session_data(expected, restored)  # counters, recorded poses, the matcher's map
+    warnings = [r.getMessage() for r in caplog.records if session.id in r.getMessage()]
+    assert len(warnings) == 1, warnings
+    assert "'manhattan'" in warnings[0]
+    assert "replaying its whole recording" in warnings[0]
+    assert json.loads(meta_path.read_bytes())["front_end"] == "matcher"
+    assert not list(folder.glob("checkpoint-*.mck"))
+    assert not list(folder.glob("frozen-*.mpack"))
+    if not mappers:
+        frontend = restored._mapper._session.frontend  # type: ignore[union-attr]
+        assert type(frontend).__name__ == "ScanMatcherFrontEnd"
+    second.close()  # an active session: a checkpoint of its own
 
-    def assert_restored_as_manhattan(restored: MappingSession) -> None:
-        assert restored.front_end == "manhattan"
-        assert restored.status == "ok", restored.damage  # the checkpoint restored
-        assert restored.damage.checkpoints_rejected == 0
-        assert session.id not in estimated  # nothing after the checkpoint to re-estimate
-        assert_same_session_data(expected, restored)
-        if not mappers:
-            frontend = restored._mapper._session.frontend  # type: ignore[union-attr]
-            assert type(frontend).__name__ == "ManhattanEstimator"
-
-    second = runtime_factory(data, mapper_processes=mappers)  # the default front end
-    assert_restored_as_manhattan(second.sessions.get(session.id))
-    other = second.sessions.create("r2", 0.05, True)
-    assert other.front_end == "matcher"
-    feed(second, SimRobot("r2"), 5)
-    other_seen = seen(other)
-    second.close()  # checkpoints r2's 5 scans
-    other_meta = data / "sessions" / other.id / "session.json"
-    assert json.loads(other_meta.read_bytes())["front_end"] == "matcher"
-
-    legacy = json.loads(meta_path.read_bytes())
-    del legacy["front_end"]
-    meta_path.write_text(json.dumps(legacy))
+    estimated.clear()
+    caplog.clear()
     third = runtime_factory(data, mapper_processes=mappers)
-    assert_restored_as_manhattan(third.sessions.get(session.id))
-    restored_other = third.sessions.get(other.id)
-    assert restored_other.front_end == "matcher"
-    assert restored_other.status == "ok", restored_other.damage
-    assert_same_session_data(other_seen, restored_other)
+    again = third.sessions.get(session.id)
+    assert again.front_end == "matcher"
+    assert again.status == "ok", again.damage
+    assert session.id not in estimated  # restored from the matcher's checkpoint
+    assert_same_session_data(expected, again)
+    assert not [r for r in caplog.records if session.id in r.getMessage()]
+    third.close()
+
+
+def test_a_session_json_naming_an_unknown_front_end_is_refused() -> None:
+    """An unknown front end (or "paper", offline only) keeps its clear error."""
+    meta = SessionMeta("s-0123456789abcdef", "r1", 1, "active", 0.05, True, "matcher")
+    for name in ("karto", "paper"):
+        obj = json.loads(meta.to_json())
+        obj["front_end"] = name
+        with pytest.raises(StoreError, match=f"unknown front end '{name}'"):
+            SessionMeta.from_json(json.dumps(obj).encode())
+    for name in ("manhattan", None):
+        obj = json.loads(meta.to_json())
+        if name is None:
+            del obj["front_end"]
+        else:
+            obj["front_end"] = name
+        legacy = SessionMeta.from_json(json.dumps(obj).encode())
+        assert (legacy.front_end, legacy.retired_front_end) == ("matcher", "manhattan")
+        # Written back as it was read until the restore retires it.
+        assert json.loads(legacy.to_json())["front_end"] == "manhattan"
 
 
 @MAPPERS

@@ -64,10 +64,8 @@ class Tolerance:
 # Scans on a simulated 40 Hz clock, taken in lockstep (deterministic: the same figures in every
 # run). Measured over robots ra, rb, rc (2.08 m each) with the default front end, the matcher:
 # distance -0.23 .. +0.11 %, end point 3.6-10.7 mm, ATE RMS 6.5-10.5 mm, ATE worst 8.7-12.8 mm,
-# heading 0.025-0.058° (the older cascade, `--front-end manhattan`, on the same scans: distance
-# -0.08 .. +0.12 %, end point 1.5-3.3 mm, ATE RMS 2.2-3.2 mm, worst 4.4-7.1 mm, heading
-# 0.014-0.030°). Bounds: about three times the worst, for other machines' floating point and
-# future estimator changes.
+# heading 0.025-0.058°. Bounds: about three times the worst, for other machines' floating point
+# and future estimator changes.
 LOCKSTEP = Tolerance(
     distance_rel=0.01, end_error_m=0.03, ate_rms_m=0.03, ate_max_m=0.04, heading_deg=0.2
 )

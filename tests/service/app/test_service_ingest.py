@@ -26,8 +26,7 @@ from service.app.fanout import PoseFanout, PoseStream
 from service.app.mapper import Engine, local_mapper_factory
 from service.app.metrics import Metrics
 from service.app.runtime import MappingRuntime
-from service.core.frontend.estimator import ManhattanEstimator
-from service.core.frontend.params import EstimatorParams
+from service.core.slam import make_frontend
 from service.core.types import LaserScan, PoseEstimate
 
 
@@ -94,7 +93,7 @@ class BlockingEstimator:
     """The real estimator behind a gate, to hold a worker busy."""
 
     def __init__(self, gate: threading.Event, entered: threading.Event) -> None:
-        self._inner = ManhattanEstimator(EstimatorParams(use_odometry=True))
+        self._inner = make_frontend(use_odometry=True)
         self._gate = gate
         self._entered = entered
 
@@ -143,7 +142,7 @@ class RecordingEstimator:
     """The real estimator, noting which robot each scan belonged to; the first waits for a gate."""
 
     def __init__(self, robot_id: str, order: list[str], gate: threading.Event) -> None:
-        self._inner = ManhattanEstimator(EstimatorParams(use_odometry=True))
+        self._inner = make_frontend(use_odometry=True)
         self._robot_id = robot_id
         self._order = order
         self._gate = gate

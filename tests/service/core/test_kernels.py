@@ -187,5 +187,37 @@ def test_hard_energies_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
         counts = np.bincount(idx.ravel(), minlength=2 * k * width)[: 2 * k * width]
         sq = np.einsum("ij,ij->i", *(counts.reshape(2 * k, width),) * 2)
         want = (sq[:k] + sq[k:]).astype(np.float64)
-        got = heading.heading_scores(points, angles, bin_m, "energy", soft=False)
+        got = heading.heading_scores(points, angles, bin_m, soft=False)
+        assert np.array_equal(got, want)
+
+
+def _numpy_soft_histograms(points: np.ndarray, angles: np.ndarray, bin_m: float) -> np.ndarray:
+    """The soft histograms (2K, width) as numpy computes them: every coordinate in bin units,
+    shifted positive, its two bins' shares counted by `np.bincount` (the kernel's reference)."""
+    k = angles.shape[0]
+    columns = heading._rotation_columns(angles, bin_m)
+    proj = points[:, 0:1] * columns[0] + points[:, 1:2] * columns[1]
+    lo = math.floor(float(proj.min())) - 1
+    width = math.ceil(float(proj.max())) - lo + 2
+    proj -= lo
+    idx = proj.astype(np.intp) + np.arange(2 * k, dtype=np.intp) * width
+    frac = proj - np.floor(proj)
+    n_bins = 2 * k * width
+    h = np.bincount(idx.ravel(), weights=(1.0 - frac).ravel(), minlength=n_bins)
+    h += np.bincount(idx.ravel() + 1, weights=frac.ravel(), minlength=n_bins)[: h.shape[0]]
+    return np.asarray(h[:n_bins].reshape(2 * k, width))
+
+
+@pytest.mark.parametrize("bin_m", [0.02, 0.05])
+def test_soft_histograms_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
+    """The walls' fine histograms: each point split between two bins by its fraction, summed in
+    `np.bincount`'s order, so the fine score (Σ h², numpy's) is the same bits."""
+    grid, pts, rng = _room()
+    del grid
+    edge = np.round(pts / bin_m) * bin_m  # points exactly on bin edges at α = 0
+    for points in (pts, edge, pts[::3], rng.normal(0.0, 8.0, (500, 2))):
+        angles = np.concatenate(([0.0], rng.uniform(-math.pi / 4, math.pi / 4, 14)))
+        got, width = kernels.soft_histograms(points, heading._rotation_columns(angles, bin_m))
+        want = _numpy_soft_histograms(points, angles, bin_m)
+        assert got.shape == want.shape == (2 * angles.shape[0], width)
         assert np.array_equal(got, want)

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scenes import CORRIDOR, ROOM, bad_scan, scan_of
 
 from clients.wire import PoseFlag
-from service.core.frontend.paper import PaperFrontEnd, PaperOptions, wall_angle
+from service.core.frontend.paper import PaperFrontEnd, PaperOptions, thin_points, wall_angle
 from service.core.slam import FRONT_ENDS, make_frontend
 from service.core.types import Pose2D, wrap_angle
 
@@ -28,6 +28,16 @@ def _quarter_deg(angle_rad: float) -> float:
 def test_make_frontend_builds_the_paper_front_end() -> None:
     assert "paper" in FRONT_ENDS
     assert isinstance(make_frontend("paper"), PaperFrontEnd)
+
+
+def test_thinning_spacing() -> None:
+    """§II-A 1): consecutive kept points about `thinning_m` apart."""
+    pts = np.column_stack((np.linspace(0.0, 5.0, 1001), np.zeros(1001)))
+    thin = thin_points(pts, 0.05)
+    gaps = np.diff(thin[:, 0])
+    assert 95 <= thin.shape[0] <= 105
+    assert np.all(gaps > 0.04)
+    assert np.all(gaps < 0.06)
 
 
 @pytest.mark.parametrize("heading_deg", [0.0, 7.3, -21.0, 38.5, 63.0, 101.2])
