@@ -124,7 +124,7 @@ class MatcherState:
     walls: WallState
     stats: FrontEndStats
     # (bias in rad per metre of odometry travel, its variance): `_learn_odometry_bias`
-    odom_heading_bias: tuple[float, float] = (0.0, 0.0)
+    odom_heading_bias: tuple[float, float]
 
 
 def surface_points(
@@ -486,7 +486,7 @@ class ScanMatcherFrontEnd:
             np.linalg.inv(np.linalg.inv(self._pose_cov + cov_pred) + h_scan), dtype=np.float64
         )
         anchor = self._velocity_anchor
-        turn_rate_rad_s = float(self._velocity[2])  # what the prediction turned by
+        turn_rate_rad_s = float(self._velocity[2])  # the velocity's, as it predicted this scan
         gap_s = 0.0 if self._stamp_ns is None else (scan.stamp_ns - self._stamp_ns) * 1e-9
         if anchor is None or gap_s > p.max_extrapolation_s:
             if anchor is not None:
