@@ -187,8 +187,7 @@ class ScanMatcherFrontEnd:
         self._pose_cov = np.zeros((3, 3))
         self._odom: Pose2D | None = None
         self._odom_noise_scale2 = np.ones(2)
-        bias_sigma = math.radians(self.params.odometry_heading_bias_sigma_deg_per_m)
-        self._odom_heading_bias = (0.0, bias_sigma * bias_sigma)
+        self._odom_heading_bias = self._odom_heading_bias_prior()
         self._submaps: list[LikelihoodGrid] = []
         self._keyframe_pose: Pose2D | None = None
         self._cov_since_keyframe = np.zeros((3, 3))
@@ -239,8 +238,9 @@ class ScanMatcherFrontEnd:
         )
         self._walls, self.stats = state.walls, state.stats
         # (a state saved before the bias was estimated starts from its prior)
-        bias_sigma = math.radians(self.params.odometry_heading_bias_sigma_deg_per_m)
-        self._odom_heading_bias = getattr(state, "odom_heading_bias", (0.0, bias_sigma**2))
+        self._odom_heading_bias = getattr(
+            state, "odom_heading_bias", self._odom_heading_bias_prior()
+        )
 
     # ------------------------------------------------------------------ public
     def process(self, scan: LaserScan) -> PoseEstimate:
@@ -430,6 +430,11 @@ class ScanMatcherFrontEnd:
         self._odom_noise_scale2 = (1.0 - alpha) * self._odom_noise_scale2 + alpha * np.minimum(
             measured, 100.0
         )
+
+    def _odom_heading_bias_prior(self) -> tuple[float, float]:
+        """The odometry heading bias's estimate before any scan: (0 rad/m, its prior variance)."""
+        sigma = math.radians(self.params.odometry_heading_bias_sigma_deg_per_m)
+        return 0.0, sigma * sigma
 
     def _learn_odometry_bias(
         self, odom_delta: Pose2D, pose: Pose2D, predicted: Pose2D, cov_pred: FloatArray
