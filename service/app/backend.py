@@ -13,9 +13,14 @@ computed on demand: after each item the thread swaps in
   pose onto the graph (the published pose);
 - a `GraphSnapshot` (nodes, closures, counters), at most every `VIEW_PERIOD_S` and at once
   after a closure;
-- the map at the current corrections (`SlamSession.map_image`: the frozen map chunks composed
-  at their anchors' corrections, a cost that grows with the chunks, not the scans), at most
-  every `RENDER_PERIOD_S` and at most `RENDER_SHARE` of the thread's time.
+- the map's revision, at most every `RENDER_PERIOD_S` (at most `RENDER_SHARE` of the
+  thread's time) and at once after a closure; and with it, while somebody reads the map (a read
+  in the last `WATCHED_S`), the map at the current corrections (`SlamSession.map_image`: the
+  frozen map chunks composed at their anchors' corrections, a cost that grows with the chunks,
+  not the scans). A read of a map nobody watched asks this thread to draw it at its next turn
+  (`image` answers None meanwhile; the reader asks again), so a read is never older than one
+  period, a request never draws (in a mapper process it would hold the process's pipe, and so
+  every session's front end in it), and a fleet nobody watches spends nothing on drawing maps.
 `finish` (a stopped session) queues the core's final search and batch optimisation.
 Reads take references under a lock held for microseconds, never the lock of the work.
 
@@ -46,7 +51,10 @@ from service.core.types import Pose2D, PoseEstimate
 log = logging.getLogger(__name__)
 
 VIEW_PERIOD_S: Final = 0.5  # graph snapshots, at most this often (and after every closure)
-RENDER_PERIOD_S: Final = 1.0  # the map, at most this often
+RENDER_PERIOD_S: Final = 1.0  # the map's revision, at most this often
+# The thread draws each revision while the map was read in the last WATCHED_S (the live page
+# reads it every 1.5 s, Foxglove every second); otherwise only when a read asks (`image`).
+WATCHED_S: Final = 30.0
 # ... and at most this share of the thread's time: composing every chunk grows with the area
 # travelled (a few ms on a 91 m loop).
 RENDER_SHARE: Final = 0.25
@@ -240,13 +248,16 @@ class LiveBackend:
         # core): a snapshot read between a submit and the next view must not say "pending 0".
         self._unpublished = 0
         self._image: GridImage | None = None
-        self._image_revision = 0
-        self._image_due = False
+        self._image_revision = 0  # the map's: bumped when a changed map is published
+        self._image_of = -1  # the revision `_image` shows (-1: none)
+        self._image_due = False  # the map changed since the last revision
+        self._draw_wanted = False  # a reader waits for the map at its revision (guarded)
         self._view_due = False
         self._timer_armed = False
         self._last_view_s = 0.0
-        self._last_render_s = 0.0
+        self._last_map_s = 0.0  # the last map revision published
         self._render_cost_s = 0.0  # the last render's duration
+        self._watched_until_s = 0.0  # rendered in the background until then (`WATCHED_S`)
         self.errors = 0
         self._idle = threading.Condition(self._lock)
 
@@ -287,8 +298,18 @@ class LiveBackend:
             return snap
 
     def image(self) -> GridImage | None:
+        """The map at its latest revision; None while the back end's thread draws it, at its
+        next turn (nobody read it in the last `WATCHED_S`, so it was not drawn): ask again.
+        Either way the thread draws each revision for the next `WATCHED_S`."""
+        if not self._session.has_map:
+            raise ValueError("this session keeps no map (map_resolution_m is None)")
         with self._lock:
-            return self._image
+            self._watched_until_s = time.monotonic() + WATCHED_S
+            if self._image_of == self._image_revision:
+                return self._image
+            self._draw_wanted = True
+        self._scheduler.schedule(self)
+        return None
 
     # -- the scheduler's side --------------------------------------------------------------
 
@@ -318,17 +339,21 @@ class LiveBackend:
                     )
             with self._lock:
                 queued = len(self._queue)
+                wanted, self._draw_wanted = self._draw_wanted, False
             now = time.monotonic()
             if self._view_due and (
                 closure or not queued or now - self._last_view_s >= VIEW_PERIOD_S
             ):
                 self._publish_view()
-            if self._image_due and (closure or now - self._last_render_s >= self._render_period()):
-                self._render()
+            period = self._render_period()
+            if self._image_due and (closure or wanted or now - self._last_map_s >= period):
+                self._publish_map(drawn=wanted or now < self._watched_until_s)
+            elif wanted:
+                self._draw()
             if not queued and self._image_due and not self._timer_armed:
                 # Drawn at most once a period: come back when it is due, not before.
                 self._timer_armed = True
-                delay = max(0.0, self._render_period() - (now - self._last_render_s))
+                delay = max(0.0, self._render_period() - (now - self._last_map_s))
                 timer = threading.Timer(delay, self._render_due)
                 timer.daemon = True
                 timer.start()
@@ -394,28 +419,43 @@ class LiveBackend:
         self._view_due = False
         self._last_view_s = time.monotonic()
 
-    def _render(self) -> None:
+    def _render(self) -> GridImage | None:
+        """The map at the current corrections (`_work` held)."""
         if not self._session.has_map:
-            self._image_due = False
-            return
+            return None
         t0 = time.perf_counter()
         image = self._session.map_image()
         self._render_cost_s = time.perf_counter() - t0
+        return image
+
+    def _draw(self) -> None:
+        """The map at the published revision, for a reader (`_work` held)."""
+        image = self._render()
         with self._lock:
-            self._image = image
+            self._image, self._image_of = image, self._image_revision
+
+    def _publish_map(self, *, drawn: bool) -> None:
+        """A new map revision, drawn when `drawn` (else at a reader's request: `image`)."""
+        self._image_due = False
+        if not self._session.has_map:
+            return
+        image = self._render() if drawn else None
+        with self._lock:
             self._image_revision += 1
+            if drawn:
+                self._image, self._image_of = image, self._image_revision
             # A new map is a new revision too: readers that hold the last one ask again.
             self._revision += 1
             self._snapshot = replace(
                 self._snapshot, revision=self._revision, image_revision=self._image_revision
             )
-        self._image_due = False
-        self._last_render_s = time.monotonic()
+        self._last_map_s = time.monotonic()
 
     # -- control -----------------------------------------------------------------------------
 
     def wait_idle(self, timeout_s: float = 60.0) -> bool:
-        """Until every queued item is in the core and the map is drawn (tests, shutdown)."""
+        """Until every queued item is in the core and the map's revision published (tests,
+        shutdown; a read then draws the map, if the back end did not)."""
         deadline = time.monotonic() + timeout_s
         with self._lock:
             while self._queue or self.scheduled or self._view_due or self._image_due:
@@ -443,6 +483,7 @@ class LiveBackend:
                 self._unpublished = len(self._queue) + 1
                 self._correction = _snap(session.backend.latest_correction())
                 self._revision += 1
+                self._image_of = -1  # the image was the old core's
             self._view_due = self._image_due = True
         self._scheduler.schedule(self)
 
@@ -456,7 +497,7 @@ class LiveBackend:
                 self._session = session
                 self._correction = Pose2D(0.0, 0.0, 0.0)
                 self._revision += 1
-                self._image = None
+                self._image, self._image_of = None, -1
                 self._image_revision += 1
             self._view_due = True
         self._scheduler.schedule(self)

@@ -53,13 +53,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final, NamedTuple, Protocol
 
-import numpy as np
-
 from clients.recording import RecordingReport, RecordingWriter
 from clients.wire import Pose, PoseFlag, Scan, decode_scan, encode_pose
 from service.app import statecodec
 from service.core.frontend.scan_matcher import warm_up
-from service.core.maps.grid import GridImage
 from service.core.slam import (
     DEFAULT_FRONT_END,
     DEFAULT_INTEGRATE_EVERY,
@@ -217,7 +214,7 @@ class Mapper(Protocol):
         ...
 
     def reset(self) -> None: ...
-    def snapshot(self) -> Any: ...  # service.core.maps.grid.GridImage
+    def snapshot(self) -> Any: ...  # GridImage; None while the back end draws it: ask again
     def state(self, pack_path: str | None = None) -> bytes:
         """For checkpoints; with `pack_path`, frozen arrays go to that `statecodec.ArrayPack`
         once (fsynced when this returns) and the bytes refer to them."""
@@ -331,12 +328,11 @@ class LocalMapper:
     delegates = False  # records nothing itself: the session's store does
 
     def snapshot(self) -> Any:
+        """The map (`GridImage`) at its latest revision; None while the back end draws it
+        (`LiveBackend.image`): ask again."""
         if self._backend is None:
             return self._session.map_image()
-        image = self._backend.image()
-        if image is None:
-            return GridImage(np.zeros((0, 0), dtype=np.int8), 0.0, 0.0, self._resolution_m)
-        return image
+        return self._backend.image()
 
     def _allowed_modules(self) -> tuple[str, ...]:
         """Where the checkpoint codec may find classes: the core and our own front end's."""

@@ -28,7 +28,7 @@ from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Final, Literal, NamedTuple, Protocol
+from typing import Any, Final, Literal, NamedTuple, Protocol, TypeVar
 
 import numpy as np
 import numpy.typing as npt
@@ -105,6 +105,12 @@ BACKEND_DRAIN_S: Final = 10.0
 LEASE_ATTEMPTS: Final = 5
 # Checkpoints kept per session: the newest, and one before it in case the newest is damaged.
 CHECKPOINTS_KEPT: Final = 2
+# A map read waits this long at most for the back end to draw a map nobody read lately
+# (`LiveBackend.image`: at its thread's next turn), asking again every MAP_POLL_S.
+MAP_DRAW_WAIT_S: Final = 10.0
+MAP_POLL_S: Final = 0.005
+
+_T = TypeVar("_T")
 
 
 @dataclass(frozen=True, slots=True)
@@ -1193,7 +1199,8 @@ class MappingSession:
 
     def _image(self) -> Any:
         """The grid snapshot, cached per map revision (lock held): the live page polls the
-        map several times a second while it only changes at keyframes."""
+        map several times a second while it only changes at keyframes. None while the back
+        end draws it (a map nobody read lately is drawn when asked): `_with_image` waits."""
         if self._restoring or self._mapper is None:
             raise restoring_error(self.id)
         if self._lost:
@@ -1207,26 +1214,45 @@ class MappingSession:
                 self._lost = True
                 self._recover()
                 image = self._mapper.snapshot()
+            if image is None:
+                return None
             self._image_cache = (image, self.map_revision)
         return self._image_cache[0]
 
+    def _with_image(self, read: Callable[[Any], _T]) -> _T:
+        """`read(image)` under the lock, with the map at its latest revision. While the back
+        end draws a map nobody read lately (at its thread's next turn), the lock is let go:
+        the session's scans and reads go on meanwhile."""
+        deadline = time.monotonic() + MAP_DRAW_WAIT_S
+        while True:
+            with self.lock:
+                image = self._image()
+                if image is not None:
+                    return read(image)
+            if time.monotonic() > deadline:
+                raise UnavailableError(
+                    f"session {self.id}: its map is being drawn; retry in a second",
+                    retry_after_s=1,
+                )
+            time.sleep(MAP_POLL_S)
+
     def map_image(self) -> MapSnapshot:
         """The map alone (no trajectory): for PGM/YAML and plain PNGs."""
-        with self.lock:
-            return MapSnapshot(
-                image=self._image(),
+        return self._with_image(
+            lambda image: MapSnapshot(
+                image=image,
                 trajectory_xy_m=np.empty((0, 2)),
                 last_pose=self._corrected(self._poses[-1:])[0] if self._poses else None,
                 revision=self.map_revision,
             )
+        )
 
     def map_snapshot(self) -> MapSnapshot:
         """The map with the trajectory's positions and the last pose."""
-        with self.lock:
-            image = self._image()
-            poses = list(self._poses)  # a cheap copy of references; the work is done unlocked
-            revision = self.map_revision
-            snap = self._graph_snapshot()
+        # A cheap copy of references; the work is done unlocked.
+        image, poses, revision, snap = self._with_image(
+            lambda image: (image, list(self._poses), self.map_revision, self._graph_snapshot())
+        )
         n = len(poses)
         xyt = np.fromiter(
             (c for p in poses for c in (p.x_m, p.y_m, p.theta_rad)), dtype=np.float64, count=3 * n

@@ -63,8 +63,8 @@ class LoopParams:
     response_max_half_m: float = 1.0  # a closure's covariance: the score's spread within ± this
     response_cells: int = 20  # ... sampled on this many steps each side
     response_temperature: float = 0.01  # p ∝ exp((score - best) / this)
-    # Dense queries only (the front end's dense scans: `translation_gate_min_points`): on sparse
-    # SICK scans (ACES, Intel) the refined peaks were no nearer the optimised graph's.
+    # Dense queries only (at least this many kept points): on sparse SICK scans (ACES, Intel)
+    # the refined peaks were no nearer the optimised graph's.
     refine_min_points: int = 250
     refine_half_m: float = 0.3  # the peak is refined within ± this of the placement ...
     refine_cells: int = 12  # ... on this many steps each side (2.5 cm) ...

@@ -1,4 +1,5 @@
-"""Log-odds occupancy grid in sparse tiles, built from scans at their poses (pure numpy).
+"""Log-odds occupancy grid in sparse tiles, built from scans at their poses (numpy; the ray
+casting compiled, `raycast`).
 
 The map grows as the robot explores: cells live in 64 x 64 float32 tiles (16 KiB, 3.2 m at
 0.05 m) allocated on first touch, so memory is proportional to the explored area; only a small
@@ -33,6 +34,7 @@ from typing import Final
 import numpy as np
 import numpy.typing as npt
 
+from service.core.maps.raycast import mark_cells
 from service.core.types import LaserScan, Pose2D, frozen_array
 
 TILE_SHIFT: Final = 6
@@ -44,18 +46,6 @@ _MAX_NEAR_STRIDE: Final = 64  # coarsest beam subset used in the near field
 
 IntArray = npt.NDArray[np.int64]
 FloatArray = npt.NDArray[np.float64]
-
-
-def _ray_samples(
-    start_m: FloatArray, end_m: FloatArray, step_m: float
-) -> tuple[IntArray, FloatArray]:
-    """Distances ``start, start + step, ...`` below ``end`` for every beam: (beam index, t)."""
-    counts = np.maximum(np.ceil((end_m - start_m) / step_m), 0.0).astype(np.int64)
-    total = int(counts.sum())
-    first = np.cumsum(counts) - counts
-    beam_of = np.repeat(np.arange(start_m.shape[0], dtype=np.int64), counts)
-    t = np.repeat(start_m, counts) + step_m * (np.arange(total) - np.repeat(first, counts))
-    return beam_of, t
 
 
 class GridError(ValueError):
@@ -144,41 +134,23 @@ class OccupancyGrid:
         self.scans_integrated += 1
         if beams.shape[0] == 0:
             return
-        ranges = scan.ranges_m[beams]
+        ranges = scan.ranges_m[beams].astype(np.float64, copy=False)
         ang = scan.angles_rad()[beams] + pose.theta_rad
         cos_a, sin_a = np.cos(ang), np.sin(ang)
         px, py = float(pose.x_m), float(pose.y_m)
 
         # Free samples from the beam's near-field start to just before its end point: half a
         # cell apart while neighbouring beams are closer than a cell (no holes between them),
-        # one cell apart beyond that, where every beam has its own cells anyway.
+        # one cell apart beyond that, where every beam has its own cells anyway. Each cell
+        # once per scan, and a hit wins over free: a scan-local mark per cell (`raycast`).
         starts = self._near_starts(scan.ranges_m.shape[0], scan.angle_increment_rad)[beams]
-        ends = ranges - 0.5 * res
         dtheta = abs(float(scan.angle_increment_rad))
         split_m = res / dtheta if dtheta > 0.0 else np.inf
-        fine_end = np.minimum(ends, split_m)
-        b_fine, t_fine = _ray_samples(starts, fine_end, self.sample_step_m)
-        b_coarse, t_coarse = _ray_samples(np.maximum(starts, fine_end), ends, res)
-        beam_of = np.concatenate((b_fine, b_coarse))
-        t = np.concatenate((t_fine, t_coarse))
-        # Cells in cell units relative to the sensor, then a scan-local window.
-        inv = 1.0 / res
-        fx, fy = px * inv, py * inv
-        cs, sn = cos_a * inv, sin_a * inv
-        free_i = np.floor(fy + t * sn[beam_of]).astype(np.int64)
-        free_j = np.floor(fx + t * cs[beam_of]).astype(np.int64)
-        hit_i = np.floor(fy + ranges * sn).astype(np.int64)
-        hit_j = np.floor(fx + ranges * cs).astype(np.int64)
-        i0 = min(int(hit_i.min()), int(np.floor(fy)))
-        j0 = min(int(hit_j.min()), int(np.floor(fx)))
-        i1 = max(int(hit_i.max()), int(np.floor(fy)))
-        j1 = max(int(hit_j.max()), int(np.floor(fx)))
-        width = j1 - j0 + 1
-
-        # Each cell once per scan, and a hit wins over free: a scan-local mark per cell.
-        mark = np.zeros((i1 - i0 + 1) * width, dtype=np.int8)
-        mark[(free_i - i0) * width + (free_j - j0)] = 1
-        mark[(hit_i - i0) * width + (hit_j - j0)] = 2
+        inv = 1.0 / res  # cells in cell units
+        mark, i0, j0, width = mark_cells(
+            px * inv, py * inv, cos_a * inv, sin_a * inv, ranges, starts, split_m, res,
+            self.sample_step_m,
+        )  # fmt: skip
         free_local = np.flatnonzero(mark == 1)
         hit_local = np.flatnonzero(mark == 2)
         local = np.concatenate((free_local, hit_local))

@@ -214,7 +214,7 @@ def _pull_last_node(runtime: MappingRuntime, session_id: str, offset_m: float) -
             backend._revision += 1
             backend._correction = correction
         backend._view_due = backend._image_due = True
-        backend._last_render_s = 0.0
+        backend._last_map_s = 0.0
     backend._scheduler.schedule(backend)
 
 

@@ -9,6 +9,7 @@ import pytest
 
 from sensor_agent.sim import LaserModel, World, simulate_scan
 from service.core.maps.grid import TILE_CELLS, GridError, GridImage, OccupancyGrid
+from service.core.maps.raycast import mark_cells
 from service.core.types import LaserScan, Pose2D
 
 RES = 0.05
@@ -162,3 +163,72 @@ def test_free_space_has_no_holes_near_robot() -> None:
     for x, y in zip((rr * np.cos(aa)).ravel(), (rr * np.sin(aa)).ravel(), strict=True):
         if max(abs(x), abs(y)) < 2.85:
             assert 0 <= cell_value(img, float(x), float(y)) < 50
+
+
+def _numpy_ray_samples(
+    start_m: np.ndarray, end_m: np.ndarray, step_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The numpy ray casting the compiled one replaced (`maps.raycast`): (beam, t)."""
+    counts = np.maximum(np.ceil((end_m - start_m) / step_m), 0.0).astype(np.int64)
+    first = np.cumsum(counts) - counts
+    beam_of = np.repeat(np.arange(start_m.shape[0], dtype=np.int64), counts)
+    t = np.repeat(start_m, counts) + step_m * (
+        np.arange(int(counts.sum())) - np.repeat(first, counts)
+    )
+    return beam_of, t
+
+
+def _numpy_mark(grid: OccupancyGrid, scan: LaserScan, pose: Pose2D) -> tuple[np.ndarray, int, int]:
+    """The scan-local window of cells crossed (1) and hit (2), as numpy drew it: (mark, i0, j0)."""
+    res = grid.resolution_m
+    beams = np.nonzero(scan.valid_mask())[0]
+    ranges = scan.ranges_m[beams]
+    ang = scan.angles_rad()[beams] + pose.theta_rad
+    starts = grid._near_starts(scan.ranges_m.shape[0], scan.angle_increment_rad)[beams]
+    ends = ranges - 0.5 * res
+    split_m = res / abs(scan.angle_increment_rad)
+    fine_end = np.minimum(ends, split_m)
+    b_fine, t_fine = _numpy_ray_samples(starts, fine_end, grid.sample_step_m)
+    b_coarse, t_coarse = _numpy_ray_samples(np.maximum(starts, fine_end), ends, res)
+    beam_of, t = np.concatenate((b_fine, b_coarse)), np.concatenate((t_fine, t_coarse))
+    cs, sn = np.cos(ang) * (1.0 / res), np.sin(ang) * (1.0 / res)
+    fx, fy = pose.x_m * (1.0 / res), pose.y_m * (1.0 / res)
+    free_i = np.floor(fy + t * sn[beam_of]).astype(np.int64)
+    free_j = np.floor(fx + t * cs[beam_of]).astype(np.int64)
+    hit_i = np.floor(fy + ranges * sn).astype(np.int64)
+    hit_j = np.floor(fx + ranges * cs).astype(np.int64)
+    i0 = min(int(hit_i.min()), math.floor(fy))
+    j0 = min(int(hit_j.min()), math.floor(fx))
+    i1 = max(int(hit_i.max()), math.floor(fy))
+    j1 = max(int(hit_j.max()), math.floor(fx))
+    width = j1 - j0 + 1
+    mark = np.zeros((i1 - i0 + 1) * width, dtype=np.int8)
+    mark[(free_i - i0) * width + (free_j - j0)] = 1
+    mark[(hit_i - i0) * width + (hit_j - j0)] = 2
+    return mark, i0, j0
+
+
+def test_the_compiled_ray_casting_marks_the_cells_numpy_did() -> None:
+    """`maps.raycast.mark_cells` does numpy's floating-point operations in numpy's order: the
+    same cells, over poses anywhere (negative cells, headings all round) and dropouts."""
+    rng = np.random.default_rng(7)
+    world = room(12.0)
+    grid = OccupancyGrid(RES)
+    for _ in range(40):
+        pose = Pose2D(*rng.uniform(-11.0, 11.0, 2), float(rng.uniform(-math.pi, math.pi)))
+        scan = scan_of(world, pose)
+        ranges = scan.ranges_m.copy()
+        ranges[rng.random(ranges.shape[0]) < 0.1] = np.nan
+        scan = LaserScan(0, scan.angle_min_rad, scan.angle_increment_rad, ranges, 0.02, 30.0)
+        expected, i0, j0 = _numpy_mark(grid, scan, pose)
+        beams = np.nonzero(scan.valid_mask())[0]
+        ang = scan.angles_rad()[beams] + pose.theta_rad
+        inv = 1.0 / RES
+        starts = grid._near_starts(ranges.shape[0], scan.angle_increment_rad)[beams]
+        split_m = RES / abs(scan.angle_increment_rad)
+        mark, ci0, cj0, _ = mark_cells(
+            pose.x_m * inv, pose.y_m * inv, np.cos(ang) * inv, np.sin(ang) * inv,
+            scan.ranges_m[beams], starts, split_m, RES, grid.sample_step_m,
+        )  # fmt: skip
+        assert (ci0, cj0) == (i0, j0)
+        np.testing.assert_array_equal(mark, expected)
