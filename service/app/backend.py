@@ -419,10 +419,8 @@ class LiveBackend:
         self._view_due = False
         self._last_view_s = time.monotonic()
 
-    def _render(self) -> GridImage | None:
-        """The map at the current corrections (`_work` held)."""
-        if not self._session.has_map:
-            return None
+    def _render(self) -> GridImage:
+        """The map at the current corrections (`_work` held; the session keeps one)."""
         t0 = time.perf_counter()
         image = self._session.map_image()
         self._render_cost_s = time.perf_counter() - t0

@@ -24,6 +24,7 @@ from clients.wire import PoseFlag
 from service.core.frontend.likelihood import LikelihoodGrid
 from service.core.frontend.matcher import MatchOptions, Priors, broad_covariance, match
 from service.core.frontend.walls import WallOptions, WallState, heading_prior, measure, observe
+from service.core.maps.grid import OccupancyGrid
 from service.core.maps.submaps import voxel_thin
 from service.core.types import (
     Covariance3,
@@ -551,10 +552,10 @@ class ScanMatcherFrontEnd:
 
 
 def warm_up() -> None:
-    """Match three scans of a made-up room, so that the compiled kernels (`kernels`, numba) are
-    loaded from their cache, or compiled, before a robot's first scan waits on them: a
-    fraction of a second from the cache, tens of seconds to compile on a busy machine, while
-    that robot's scans queue."""
+    """Match three scans of a made-up room and draw the last into a grid, so that the compiled
+    kernels (`kernels` and the map's `raycast`, numba) are loaded from their cache, or
+    compiled, before a robot's first scan waits on them: a fraction of a second from the
+    cache, tens of seconds to compile on a busy machine, while that robot's scans queue."""
     half_m = np.array([4.0, 3.0])  # the room: 8 m × 6 m around the origin
     angles = np.linspace(-0.75 * math.pi, 0.75 * math.pi, 1081)  # a UTM-30LX
     front = ScanMatcherFrontEnd(MatcherParams(use_odometry=False))
@@ -565,6 +566,6 @@ def warm_up() -> None:
         with np.errstate(divide="ignore", invalid="ignore"):  # parallel beams never meet it
             to_wall = (np.sign(d) * half_m - start) / d
         ranges = np.min(np.where(to_wall > 0.0, to_wall, np.inf), axis=1)
-        front.process(
-            LaserScan(i * 25_000_000, -0.75 * math.pi, angles[1] - angles[0], ranges, 0.1, 30.0)
-        )
+        scan = LaserScan(i * 25_000_000, -0.75 * math.pi, angles[1] - angles[0], ranges, 0.1, 30.0)
+        front.process(scan)
+    OccupancyGrid().integrate(scan, pose)

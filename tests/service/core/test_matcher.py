@@ -32,6 +32,7 @@ from service.core.frontend.walls import (
     measure,
     observe,
 )
+from service.core.maps import raycast
 from service.core.types import Pose2D, rotate_points
 
 pytestmark = pytest.mark.timeout(120)
@@ -430,11 +431,12 @@ def test_an_odometry_heading_glitch_is_outvoted_by_the_velocity() -> None:
 
 def test_warm_up_loads_every_compiled_kernel() -> None:
     """The service calls `warm_up` at start so that a robot's first scan does not wait on numba:
-    every kernel the matcher uses has a compiled signature after it."""
+    every kernel the matcher uses, and the map's ray casting, has a compiled signature after it."""
     warm_up()
     for name in ("gauss_newton", "lattice_gather", "block_bounds", "carve", "soft_histograms"):
         assert getattr(kernels, name).signatures, name
     assert kernels.hard_energies.signatures
+    assert raycast.mark_cells.signatures
 
 
 @pytest.mark.parametrize(
