@@ -18,6 +18,7 @@ import argparse
 import contextlib
 import json
 import logging
+import re
 import subprocess
 import sys
 import tempfile
@@ -69,6 +70,68 @@ def process_tree_cpu(pid: int) -> dict[str, float]:
                 ct = child.cpu_times()
                 out[_child_label(child)] = ct.user + ct.system
     return out
+
+
+# Zenoh's own threads (its Rust runtime: rx-N, tx-N, acc-N, app-N, net-N), not Python's.
+_ZENOH_THREADS = ("rx-", "tx-", "acc-", "app-", "net-")
+_PYSPY_THREAD = re.compile(r'^Thread (\d+) \([^)]*\): "(.*)"$')
+
+
+def thread_cpu(pid: int) -> dict[int, tuple[str, float]]:
+    """Per thread of the process `pid`, by native id: (its OS name, CPU seconds, user +
+    system). Exact, unlike a sampler's guess of which thread was on a CPU."""
+    out: dict[int, tuple[str, float]] = {}
+    with contextlib.suppress(psutil.Error):
+        for t in psutil.Process(pid).threads():
+            try:
+                comm = Path(f"/proc/{pid}/task/{t.id}/comm").read_text().strip()
+            except OSError:
+                comm = "?"
+            out[t.id] = (comm, t.user_time + t.system_time)
+    return out
+
+
+def python_thread_names(pid: int) -> dict[int, str]:
+    """The Python threads' names (`threading.Thread.name`) by native id, from `py-spy dump`;
+    empty without py-spy. The OS names them all "python"."""
+    exe = pyspy_available()
+    if exe is None:
+        return {}
+    try:
+        dump = subprocess.run(
+            [exe, "dump", "--pid", str(pid), "--nonblocking"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=False,
+        ).stdout
+    except (OSError, subprocess.TimeoutExpired):
+        return {}
+    names = {}
+    for line in dump.splitlines():
+        m = _PYSPY_THREAD.match(line.strip())
+        if m:
+            names[int(m.group(1))] = m.group(2)
+    return names
+
+
+def thread_split(
+    before: dict[int, tuple[str, float]],
+    after: dict[int, tuple[str, float]],
+    names: dict[int, str],
+) -> dict[str, float]:
+    """CPU seconds per thread label between two `thread_cpu` snapshots (a thread born between
+    them counts whole): Python threads by name, Zenoh's runtime as one, others by OS name."""
+    used: Counter[str] = Counter()
+    for tid, (comm, cpu_s) in after.items():
+        if tid in names:
+            label = names[tid]
+        elif comm.startswith(_ZENOH_THREADS):
+            label = "zenoh (native)"
+        else:
+            label = comm
+        used[label] += cpu_s - before.get(tid, (comm, 0.0))[1]
+    return dict(used.most_common())
 
 
 def _child_label(child: psutil.Process) -> str:
@@ -129,6 +192,15 @@ def budget_rows(point: dict[str, Any]) -> list[list[str]]:
     return rows
 
 
+def thread_rows(point: dict[str, Any]) -> list[list[str]]:
+    """Markdown rows: process, then its threads' CPU-ms per scan (exact, from /proc)."""
+    rows = []
+    for name, threads in (point.get("cpu_ms_per_scan_by_thread") or {}).items():
+        split = ", ".join(f"{t} {ms:.3f}" for t, ms in threads.items() if ms >= 0.005)
+        rows.append([str(point["robots"]), name, split or "-"])
+    return rows
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from bench.scale import ScaleConfig, run_point
 
@@ -171,6 +243,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"p50 {p['latency_p50_ms']:.1f} ms, p99 {p['latency_p99_ms']:.1f} ms, "
             f"machine busy {p['machine_busy_pct']:.0f} %, load {p['loadavg_before'][0]:.1f} -->"
         )
+    print()
+    print("| robots | process | threads (CPU-ms/scan, exact) |")
+    print("|---|---|---|")
+    for p in points:
+        for row in thread_rows(p):
+            print("| " + " | ".join(row) + " |")
     return 0
 
 

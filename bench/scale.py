@@ -36,7 +36,14 @@ import numpy as np
 import psutil
 
 from bench.common import BenchError, Target
-from bench.cpu_budget import process_tree_cpu, stage_shares, start_pyspy
+from bench.cpu_budget import (
+    process_tree_cpu,
+    python_thread_names,
+    stage_shares,
+    start_pyspy,
+    thread_cpu,
+    thread_split,
+)
 from bench.profiling import pyspy_profile
 
 log = logging.getLogger(__name__)
@@ -510,12 +517,17 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
         result["loadavg_before"] = list(os.getloadavg())
         cpu0 = _cpu_snapshot(svc, load_ps, sub_ps)
         by_proc0 = process_tree_cpu(svc.pid), time.monotonic()
+        pids = {
+            label: svc.pid if label == "main" else int(label.rsplit("-", 1)[1])
+            for label in by_proc0[0]
+            if not label.startswith("tracker")
+        }
+        threads0 = {label: thread_cpu(pid) for label, pid in pids.items()}
         t0_ns, w0 = time.time_ns(), time.monotonic()
         profile = None
         spies: dict[str, tuple[subprocess.Popen[bytes], Path]] = {}
         if cfg.stage_profile:
-            for label in by_proc0[0]:
-                pid = svc.pid if label == "main" else int(label.rsplit("-", 1)[1])
+            for label, pid in pids.items():
                 out = work_dir / f"{name}-{label}.stacks"
                 spy = start_pyspy(pid, min(cfg.profile_s, cfg.measure_s), out)
                 if spy is not None:
@@ -532,6 +544,8 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
         t1_ns = time.time_ns()
         cpu1 = _cpu_snapshot(svc, load_ps, sub_ps)
         by_proc1 = process_tree_cpu(svc.pid), time.monotonic()
+        threads1 = {label: thread_cpu(pid) for label, pid in pids.items()}
+        thread_names = {label: python_thread_names(pid) for label, pid in pids.items()}
         result["loadavg_after"] = list(os.getloadavg())
         metrics1 = _scrape(client)
 
@@ -594,6 +608,16 @@ def run_point(cfg: ScaleConfig, work_dir: Path, seed: int = 1) -> dict[str, Any]
         result["cpu_pct_by_process"] = {k: 100.0 * v / span_s for k, v in used.items()}
         result["cpu_ms_per_scan_by_process"] = {
             k: 1000.0 * v / accepted if accepted else math.nan for k, v in used.items()
+        }
+        result["cpu_ms_per_scan_by_thread"] = {
+            label: {
+                t: 1000.0 * v / accepted if accepted else math.nan
+                for t, v in thread_split(
+                    threads0[label], threads1[label], thread_names[label]
+                ).items()
+            }
+            for label in pids
+            if label in threads1
         }
         shares = {}
         for label, (spy, out) in spies.items():

@@ -38,8 +38,8 @@ from service import mapio
 from service.bridge import scan_to_laser
 from service.core.maps.grid import GridImage
 from service.core.slam import (
+    DEFAULT_DRAW_PERIOD_S,
     DEFAULT_FRONT_END,
-    DEFAULT_INTEGRATE_EVERY,
     FrontEndName,
     LoopStats,
     SlamParams,
@@ -97,7 +97,7 @@ def map_scans(
     *,
     resolution_m: float = 0.05,
     use_odometry: bool = True,
-    integrate_every: int = DEFAULT_INTEGRATE_EVERY,
+    draw_period_s: float = DEFAULT_DRAW_PERIOD_S,
     total: int | None = None,
     progress: bool = False,
     on_estimate: Callable[[Scan, PoseEstimate], None] | None = None,
@@ -107,7 +107,7 @@ def map_scans(
 ) -> MapRun:
     """Estimate a pose for every scan and build the occupancy map (`SlamSession`).
 
-    The map draws keyframes and every `integrate_every`-th scan (0: keyframes only); degenerate
+    The map draws keyframes and a scan every `draw_period_s` (0: keyframes only); degenerate
     poses are never drawn (their pose is only a prediction). Without loop closure it is one
     grid at the front-end poses. With `loop_closure`, the back end closes loops over the
     keyframes; each drawn scan goes, at its front-end pose, into the map chunk of its stretch
@@ -122,7 +122,7 @@ def map_scans(
         slam_params,
         frontend,
         map_resolution_m=resolution_m,
-        integrate_every=integrate_every,
+        draw_period_s=draw_period_s,
     )
     run = MapRun(front_end=front_end)
     start = time.perf_counter()

@@ -58,8 +58,8 @@ from clients.wire import Pose, PoseFlag, Scan, decode_scan, encode_pose
 from service.app import statecodec
 from service.core.frontend.scan_matcher import warm_up
 from service.core.slam import (
+    DEFAULT_DRAW_PERIOD_S,
     DEFAULT_FRONT_END,
-    DEFAULT_INTEGRATE_EVERY,
     FrontEndName,
     SlamParams,
     SlamSession,
@@ -105,8 +105,8 @@ class Engine:
     # The back end (loop closure, pose graph) beside the front end, in a background thread
     # (service/app/backend.py); False: the front end and its map alone.
     loop_closure: bool = True
-    # The map rule's "every Nth scan" (`SlamSession`): as `mapping-service map`.
-    integrate_every: int = DEFAULT_INTEGRATE_EVERY
+    # The map rule's period in scan time (`SlamSession`): as `mapping-service map`.
+    draw_period_s: float = DEFAULT_DRAW_PERIOD_S
     # Tests only: a front end of their own instead of `front_end`.
     make_estimator: EstimatorFactory | None = None
     to_laser: ScanConverter = default_scan_converter
@@ -264,7 +264,7 @@ class LocalMapper:
             SlamParams(loop_closure=engine.loop_closure),
             frontend,
             map_resolution_m=self._resolution_m,
-            integrate_every=engine.integrate_every,
+            draw_period_s=engine.draw_period_s,
             keep_trajectory=False,  # the session records its poses itself
         )
 

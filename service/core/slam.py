@@ -42,9 +42,10 @@ from service.core.types import FloatArray, LaserScan, Pose2D, PoseEstimate, froz
 if TYPE_CHECKING:
     from service.core.backend.graph import PoseGraph
 
-# The map rule: every keyframe, and at least every Nth scan so slow motion still paints free
-# space (0: keyframes only).
-DEFAULT_INTEGRATE_EVERY: Final = 5
+# The map rule: every keyframe, and a scan at least this long (scan time) after the last one
+# drawn, so slow motion still paints free space (0: keyframes only). In time, not in scans: a
+# 40 Hz laser would otherwise draw eight times as often as a 5 Hz one, for the same map.
+DEFAULT_DRAW_PERIOD_S: Final = 1.0
 
 _NOT_ANCHORED = PoseFlag.DEGENERATE | PoseFlag.NON_MANHATTAN | PoseFlag.NO_DOMINANT_WALL
 
@@ -358,7 +359,7 @@ class Tracked(NamedTuple):
     scan: LaserScan
     estimate: PoseEstimate
     node: bool  # becomes a graph node (a keyframe, with loop closure on)
-    drawn: bool  # drawn into the map (keyframes and every `integrate_every`-th scan, usable)
+    drawn: bool  # drawn into the map (keyframes and one per `draw_period_s`, usable)
 
 
 class SlamSession:
@@ -367,7 +368,7 @@ class SlamSession:
     Per scan, `process` runs the two halves in turn:
     - `track` (the front half): the front end's estimate, and the map rule: a scan is drawn
       when it is usable (never `DEGENERATE`: its pose is only a prediction) and it is a
-      keyframe, the first scan, or `integrate_every` scans after the last one drawn;
+      keyframe, the first scan, or `draw_period_s` of scan time after the last one drawn;
     - `integrate` (the back half): a keyframe becomes a graph node (loop search, iSAM2); a
       drawn scan is ray-cast once at its front-end pose: with loop closure into the map chunk
       of its latest node's stretch of travel (`maps.composed.ChunkedMap`, frozen once the next
@@ -383,24 +384,29 @@ class SlamSession:
     `mapping-service map` pass theirs by name (`make_frontend`).
     """
 
+    # Defaults for a session restored from a checkpoint written before the map rule was in
+    # scan time (it restores attributes one by one: `service.app.statecodec`).
+    draw_period_s: float = DEFAULT_DRAW_PERIOD_S
+    _drawn_stamp_ns: int | None = None
+
     def __init__(
         self,
         params: SlamParams | None = None,
         frontend: Tracker | None = None,
         *,
         map_resolution_m: float | None = None,
-        integrate_every: int = DEFAULT_INTEGRATE_EVERY,
+        draw_period_s: float = DEFAULT_DRAW_PERIOD_S,
         keep_trajectory: bool = True,
     ) -> None:
         self.params = params if params is not None else SlamParams()
         self.frontend: Tracker = frontend if frontend is not None else make_frontend()
         self.backend = SlamBackend(self.params)
-        self.integrate_every = int(integrate_every)
+        self.draw_period_s = float(draw_period_s)
         self.map_resolution_m = map_resolution_m
         self.keep_trajectory = keep_trajectory
-        # Front half: scans tracked, scans since the last one drawn.
+        # Front half: scans tracked, the stamp of the last one drawn.
         self._tracked = 0
-        self._since_drawn = 0
+        self._drawn_stamp_ns: int | None = None
         # Back half.
         self._scan_node: list[int] = []  # per scan: its latest node (-1: none yet)
         self._scan_frontend: list[Pose2D] = []
@@ -446,12 +452,14 @@ class SlamSession:
     def select(self, scan: LaserScan, estimate: PoseEstimate) -> Tracked:
         """The map rule and the node rule for an estimate (`track` without the front end)."""
         self._tracked += 1
-        self._since_drawn += 1
         usable = not estimate.flags & PoseFlag.DEGENERATE
-        due = 0 < self.integrate_every <= self._since_drawn
+        last = self._drawn_stamp_ns
+        due = self.draw_period_s > 0 and (
+            last is None or scan.stamp_ns - last >= self.draw_period_s * 1e9
+        )
         drawn = self.has_map and usable and (estimate.is_keyframe or due or self._tracked == 1)
         if drawn:
-            self._since_drawn = 0
+            self._drawn_stamp_ns = scan.stamp_ns
         node = self.params.loop_closure and estimate.is_keyframe
         return Tracked(scan, estimate, node, drawn)
 

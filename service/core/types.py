@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from functools import lru_cache
 from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
@@ -141,8 +142,20 @@ class LaserScan:
         """(M, 2) float64 Cartesian points of the valid beams, laser frame."""
         mask = self.valid_mask()
         r = self.ranges_m[mask]
-        a = self.angles_rad()[mask]
-        return np.column_stack((r * np.cos(a), r * np.sin(a)))
+        cos, sin = _beam_directions(self.angle_min_rad, self.angle_increment_rad, mask.shape[0])
+        return np.column_stack((r * cos[mask], r * sin[mask]))
+
+
+@lru_cache(maxsize=16)
+def _beam_directions(
+    angle_min_rad: float, angle_increment_rad: float, n: int
+) -> tuple[FloatArray, FloatArray]:
+    """cos and sin of each beam's angle (`LaserScan.angles_rad`): a laser's beams are the same
+    every scan, so they are computed once per laser (elementwise, the same bits)."""
+    a = angle_min_rad + angle_increment_rad * np.arange(n, dtype=np.float64)
+    cos, sin = np.cos(a), np.sin(a)
+    cos.flags.writeable = sin.flags.writeable = False
+    return cos, sin
 
 
 @dataclass(frozen=True, slots=True)

@@ -10,9 +10,7 @@ matcher's heading prior.
 from __future__ import annotations
 
 import math
-import threading
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import numpy.typing as npt
@@ -26,18 +24,6 @@ QUARTER = math.pi / 2.0
 def wrap_quarter(angle_rad: float | FloatArray) -> float | FloatArray:
     """Wrap to [-45°, 45°)."""
     return (angle_rad + QUARTER / 2.0) % QUARTER - QUARTER / 2.0
-
-
-_WORK = threading.local()  # per-thread scratch buffers: front ends may run in worker threads
-
-
-def _scratch(name: str, size: int, dtype: type[np.generic]) -> npt.NDArray[Any]:
-    """A reusable 1-D buffer of at least `size` items (fresh large arrays cost page faults)."""
-    buf: npt.NDArray[Any] | None = getattr(_WORK, name, None)
-    if buf is None or buf.size < size:
-        buf = np.empty(max(size, 1024), dtype=dtype)
-        setattr(_WORK, name, buf)
-    return buf[:size]
 
 
 def _rotation_columns(angles_rad: FloatArray, bin_m: float) -> FloatArray:
@@ -55,19 +41,6 @@ def _rotation_columns(angles_rad: FloatArray, bin_m: float) -> FloatArray:
     return dirs
 
 
-def _rotate_into(points_xy_m: FloatArray, columns: FloatArray, out: FloatArray) -> None:
-    """out (M, 2K) = x·columns[0] + y·columns[1], as two products and a sum per element.
-
-    Not a matrix product: BLAS kernels differ in the last bits (a fused multiply-add or not,
-    `OPENBLAS_CORETYPE`), a point on a bin edge then changes bins, and a decision downstream
-    with it (ACES: 0.138 or 0.192 m by kernel). Element-wise ufuncs round the same everywhere.
-    """
-    tmp = _scratch("rotate_tmp", out.size, np.float64).reshape(out.shape)
-    np.multiply(points_xy_m[:, 0:1], columns[0], out=out)
-    np.multiply(points_xy_m[:, 1:2], columns[1], out=tmp)
-    out += tmp
-
-
 def _hard_offset(points_xy_m: FloatArray, bin_m: float) -> tuple[int, int]:
     """(offset, width) in bins of hard bins: the offset from the largest range instead of the
     data's extremes (only bin membership matters for hard bins, and an offset by whole bins
@@ -77,36 +50,6 @@ def _hard_offset(points_xy_m: FloatArray, bin_m: float) -> tuple[int, int]:
     r_bins = math.sqrt(r2_max) / bin_m
     lo = -math.ceil(r_bins) - 1
     return lo, math.ceil(r_bins) - lo + 2
-
-
-def _hard_indices(
-    points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float
-) -> tuple[npt.NDArray[np.intp], int]:
-    """Flat bin indices (M, 2K) for hard binning (offset: `_hard_offset`)."""
-    k = angles_rad.shape[0]
-    m = points_xy_m.shape[0]
-    lo, width = _hard_offset(points_xy_m, bin_m)
-    proj = _scratch("proj", m * 2 * k, np.float64).reshape(m, 2 * k)
-    _rotate_into(points_xy_m, _rotation_columns(angles_rad, bin_m), proj)
-    proj -= float(lo)
-    idx = _scratch("idx", m * 2 * k, np.intp).reshape(m, 2 * k)
-    np.copyto(idx, proj, casting="unsafe")  # positive: truncation is floor
-    idx += np.arange(2 * k, dtype=np.intp) * width
-    return idx, width
-
-
-def _projection_histograms(
-    points_xy_m: FloatArray, angles_rad: FloatArray, bin_m: float
-) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
-    """Hard-binned histograms of the rotated points' x and y coordinates, one row per angle.
-
-    Returns (hist_x, hist_y), each (K, B).
-    """
-    k = angles_rad.shape[0]
-    idx, width = _hard_indices(points_xy_m, angles_rad, bin_m)
-    h = np.bincount(idx.ravel(), minlength=2 * k * width).astype(np.float64)
-    h2: FloatArray = np.asarray(h[: 2 * k * width], dtype=np.float64).reshape(2 * k, width)
-    return h2[:k], h2[k:]
 
 
 def heading_scores(
@@ -215,6 +158,14 @@ def measure_heading(
     if refine and 0 < i < len(angles) - 1:
         offset = parabolic_offset(float(scores[i - 1]), float(scores[i]), float(scores[i + 1]))
     best = float(wrap_quarter(float(angles[i]) + offset * step_rad))
-    hx, hy = _projection_histograms(pts, np.array([best]), bin_m)
     n = max(1, pts.shape[0])
-    return HeadingMeasurement(angle_rad=best, peak_fraction=(float(hx.max()) + float(hy.max())) / n)
+    return HeadingMeasurement(angle_rad=best, peak_fraction=float(_peaks(pts, best, bin_m)) / n)
+
+
+def _peaks(points_xy_m: FloatArray, angle_rad: float, bin_m: float) -> int:
+    """The points on the strongest line of each family at `angle_rad`: the peaks of its two
+    hard projection histograms, added."""
+    lo, width = _hard_offset(points_xy_m, bin_m)
+    columns = _rotation_columns(np.array([angle_rad]), bin_m)
+    peaks = kernels.hard_peaks(points_xy_m, columns, float(lo), width)
+    return int(peaks[0] + peaks[1])

@@ -691,6 +691,31 @@ def hard_energies(
 
 
 @_jit
+def hard_peaks(
+    points_xy_m: FloatArray, columns: FloatArray, offset_bins: float, width: int
+) -> IntArray:
+    """The largest bin of each column's hard projection histogram (the columns and the bins
+    as `hard_energies` forms them: the same bits as numpy's `bincount` of those bins)."""
+    n_cols = columns.shape[1]
+    hist = np.zeros(width, dtype=np.int64)
+    peaks = np.zeros(n_cols, dtype=np.int64)
+    for col in range(n_cols):
+        c0, c1 = columns[0, col], columns[1, col]
+        hist[:] = 0
+        peak = 0
+        for p in range(points_xy_m.shape[0]):
+            a = points_xy_m[p, 0] * c0
+            b = points_xy_m[p, 1] * c1
+            b = a + b
+            b = b - offset_bins
+            i = int(b)
+            hist[i] += 1
+            peak = max(peak, hist[i])
+        peaks[col] = peak
+    return peaks
+
+
+@_jit
 def soft_histograms(points_xy_m: FloatArray, columns: FloatArray) -> tuple[FloatArray, int]:
     """`heading.heading_scores`' soft histograms, (2K, width), and the width: each coordinate
     x·c₀ + y·c₁ (a column of `heading._rotation_columns`, in bin units), shifted by the bins

@@ -38,9 +38,11 @@ than that, the only case where it can win (`match`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import numpy as np
+import numpy.typing as npt
 
 from service.core.frontend import kernels
 from service.core.frontend.likelihood import LikelihoodGrid, off_surface_cost
@@ -84,6 +86,11 @@ class Priors:
     # The motion prior's second component, (pose, covariance), at `second_cost`: another model
     # of the same motion (constant velocity when the first is odometry). None: none.
     second: tuple[Pose2D, FloatArray] | None = None
+    info_pred: FloatArray = field(init=False, repr=False)  # cov_pred⁻¹, used by every step
+
+    def __post_init__(self) -> None:
+        info = np.ascontiguousarray(np.linalg.inv(self.cov_pred), dtype=np.float64)
+        object.__setattr__(self, "info_pred", info)
 
 
 @dataclass(frozen=True, slots=True)
@@ -111,7 +118,15 @@ def _scored_points(points_xy_m: FloatArray, opts: MatchOptions) -> FloatArray:
     n = points_xy_m.shape[0]
     if n <= opts.search_points:
         return points_xy_m
-    return points_xy_m[np.linspace(0, n - 1, opts.search_points).astype(np.int64)]
+    return points_xy_m[_evenly_spaced(n, opts.search_points)]
+
+
+@lru_cache(maxsize=64)
+def _evenly_spaced(n: int, k: int) -> npt.NDArray[np.int64]:
+    """k indices evenly spaced over 0..n-1 (scans of one laser have a few sizes: cached)."""
+    out = np.linspace(0, n - 1, k).astype(np.int64)
+    out.flags.writeable = False
+    return out
 
 
 def search(
@@ -132,7 +147,7 @@ def search(
         half_cols=half_cols,
         predicted_xy_m=(priors.predicted.x_m, priors.predicted.y_m),
         predicted_theta_rad=priors.predicted.theta_rad,
-        info_pred=np.asarray(np.linalg.inv(priors.cov_pred), dtype=np.float64),
+        info_pred=priors.info_pred,
         scan_weight=opts.scan_weight,
         wall_heading_rad=priors.wall_heading_rad,
         wall_sigma_rad=priors.wall_sigma_rad,
@@ -246,7 +261,7 @@ def refine(
         grid.values, ox, oy, grid.resolution_m, np.ascontiguousarray(points_xy_m, dtype=np.float64),
         np.array([start.x_m, start.y_m, start.theta_rad]),
         np.array([priors.predicted.x_m, priors.predicted.y_m, priors.predicted.theta_rad]),
-        np.ascontiguousarray(np.linalg.inv(priors.cov_pred), dtype=np.float64),
+        priors.info_pred,
         math.nan if wall is None else wall, priors.wall_sigma_rad, opts.wall_huber,
         opts.scan_weight, opts.max_residual_sigmas, opts.refine_iterations, opts.refine_halvings,
     )  # fmt: skip
@@ -333,7 +348,7 @@ def weakest_axis_from_response(
     of the two is kept)."""
     evals, evecs = np.linalg.eigh(h_scan[:2, :2])
     u = evecs[:, 0]
-    info_pred = np.linalg.inv(priors.cov_pred)[:2, :2]
+    info_pred = priors.info_pred[:2, :2]
     prior_u = float(u @ info_pred @ u)
     res = grid.resolution_m
     half_m = min(

@@ -173,22 +173,38 @@ def test_insert_is_numpys_bit_for_bit() -> None:
         assert np.array_equal(ours.values, ref.values)
 
 
+def _numpy_hard_counts(points: np.ndarray, angles: np.ndarray, bin_m: float) -> np.ndarray:
+    """The hard projection histograms (2K, width) as numpy computes them: each coordinate
+    x·c₀ + y·c₁ in bin units as two products and a sum (a matrix product may round otherwise),
+    shifted by `_hard_offset`, truncated to its bin and counted by `np.bincount`."""
+    k = angles.shape[0]
+    lo, width = heading._hard_offset(points, bin_m)
+    columns = heading._rotation_columns(angles, bin_m)
+    proj = points[:, 0:1] * columns[0] + points[:, 1:2] * columns[1]
+    idx = (proj - float(lo)).astype(np.intp) + np.arange(2 * k, dtype=np.intp) * width
+    counts = np.bincount(idx.ravel(), minlength=2 * k * width)[: 2 * k * width]
+    return counts.reshape(2 * k, width)
+
+
 @pytest.mark.parametrize("bin_m", [0.02, 0.05, 0.1])
-def test_hard_energies_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
-    """The walls' coarse histogram: Σ h² per angle, as `np.bincount` of the bin indices gives it
-    (points on bin edges included: a point a bin apart changes the score)."""
+def test_hard_energies_and_peaks_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
+    """The walls' hard histograms: Σ h² per angle (the coarse search) and the largest bin (the
+    peak fraction), as `np.bincount` of the bin indices gives them (points on bin edges
+    included: a point a bin apart changes the score)."""
     grid, pts, rng = _room()
     del grid
     edge = np.round(pts / bin_m) * bin_m  # points exactly on bin edges at α = 0
     for points in (pts, edge, pts[::3], rng.normal(0.0, 8.0, (500, 2))):
         angles = np.concatenate(([0.0], rng.uniform(-math.pi / 4, math.pi / 4, 40)))
-        idx, width = heading._hard_indices(points, angles, bin_m)
+        counts = _numpy_hard_counts(points, angles, bin_m)
         k = angles.shape[0]
-        counts = np.bincount(idx.ravel(), minlength=2 * k * width)[: 2 * k * width]
-        sq = np.einsum("ij,ij->i", *(counts.reshape(2 * k, width),) * 2)
+        sq = np.einsum("ij,ij->i", counts, counts)
         want = (sq[:k] + sq[k:]).astype(np.float64)
         got = heading.heading_scores(points, angles, bin_m, soft=False)
         assert np.array_equal(got, want)
+        for a in (0, 7, 40):
+            one = _numpy_hard_counts(points, angles[a : a + 1], bin_m)
+            assert heading._peaks(points, float(angles[a]), bin_m) == one.max(axis=1).sum()
 
 
 def _numpy_soft_histograms(points: np.ndarray, angles: np.ndarray, bin_m: float) -> np.ndarray:

@@ -436,6 +436,7 @@ def test_warm_up_loads_every_compiled_kernel() -> None:
     for name in ("gauss_newton", "lattice_gather", "block_bounds", "carve", "soft_histograms"):
         assert getattr(kernels, name).signatures, name
     assert kernels.hard_energies.signatures
+    assert kernels.hard_peaks.signatures
     assert raycast.mark_cells.signatures
 
 
