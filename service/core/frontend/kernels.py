@@ -550,32 +550,61 @@ def stamp_cells(
     i_lo, i_hi = ci.min() + di.min(), ci.max() + di.max()
     j_lo, j_hi = cj.min() + dj.min(), cj.max() + dj.max()
     bw = j_hi - j_lo + 1
-    counts = np.zeros((i_hi - i_lo + 1) * bw + 1, dtype=np.int64)
-    keys = np.empty(n * k_n, dtype=np.int64)
+    # int32 counts and keys: the box and the stamps are far below 2^31 cells, and half the
+    # bytes keep the counting in cache.
+    counts = np.zeros((i_hi - i_lo + 1) * bw, dtype=np.int32)
+    keys = np.empty(n * k_n, dtype=np.int32)
     for p in range(n):
+        base = (ci[p] - i_lo) * bw + (cj[p] - j_lo)
         for k in range(k_n):
-            key = (ci[p] + di[k] - i_lo) * bw + (cj[p] + dj[k] - j_lo)
+            key = base + di[k] * bw + dj[k]
             keys[p * k_n + k] = key
-            counts[key + 1] += 1
-    distinct = 0
-    for b in range(1, counts.shape[0]):
-        if counts[b] > 0:
-            distinct += 1
-        counts[b] += counts[b - 1]
-    cells = np.empty(distinct, dtype=np.int64)
-    starts = np.empty(distinct, dtype=np.int64)
+            counts[key] += 1
+    # One pass: each cell's start (an exclusive prefix sum, left in `counts`) and the cells.
+    cells = np.empty(n * k_n, dtype=np.int64)
+    starts = np.empty(n * k_n, dtype=np.int64)
     d = 0
-    for b in range(counts.shape[0] - 1):
-        if counts[b + 1] > counts[b]:
-            cells[d] = (b // bw + i_lo) * width + (b % bw + j_lo)
-            starts[d] = counts[b]
-            d += 1
+    total = 0
+    b = 0
+    for bi in range(i_hi - i_lo + 1):
+        row = (bi + i_lo) * width + j_lo
+        for bj in range(bw):
+            c = counts[b]
+            if c > 0:
+                cells[d] = row + bj
+                starts[d] = total
+                d += 1
+            counts[b] = total
+            total += c
+            b += 1
     order = np.empty(n * k_n, dtype=np.int64)
     for idx in range(n * k_n):
         key = keys[idx]
         order[counts[key]] = idx
         counts[key] += 1
-    return order, cells, starts
+    return order, cells[:d], starts[:d]
+
+
+@_jit
+def stamp_add(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    density: F32Array,
+    hits: F32Array,
+    stamped: npt.NDArray[np.int32],
+    cells: IntArray,
+    added: FloatArray,
+    this_insert: int,
+    carved: bool,
+) -> None:
+    """`LikelihoodGrid.insert`'s scatter of the stamps' sums (`added`, per distinct cell of
+    `cells`, flat) into the density, as float32 (numpy's `density.flat[cells] +=
+    added.astype(float32)`); with free space carved, a hit and this insert's mark per cell."""
+    dens, hit, mark = density.reshape(-1), hits.reshape(-1), stamped.reshape(-1)
+    for d in range(cells.shape[0]):
+        c = cells[d]
+        dens[c] = dens[c] + np.float32(added[d])
+        if carved:
+            hit[c] = hit[c] + np.float32(1.0)
+            mark[c] = this_insert
 
 
 @_jit
@@ -595,19 +624,60 @@ def _normalised(density: F32Array, rad: int, i: int, j: int) -> np.float32:
 
 @_jit
 def normalise(  # noqa: PLR0917 - numba takes no keyword-only arguments
-    density: F32Array, values: F32Array, rad: int, i0: int, i1: int, j0: int, j1: int
+    density: F32Array,
+    values: F32Array,
+    hits: F32Array,
+    misses: F32Array,
+    carved: bool,
+    rad: int,
+    i0: int,
+    i1: int,
+    j0: int,
+    j1: int,
 ) -> None:
     """`LikelihoodGrid._normalise` over rows i0:i1, columns j0:j1 (within the grid): the field
     = density / its maximum over the (2·rad + 1)² window (clipped to the grid), 0 where that
-    maximum is at most 1e-3. Where the density is 0 (most of a scan's box: open space) so is
-    the field, whatever the maximum, so the window is read only where it is not
-    (`_normalised`)."""
+    maximum is at most 1e-3; with free space `carved`, times hits / max(hits + misses, 1)
+    where hits + misses > 0, all in float32: the bits of numpy's `values *= np.where(seen > 0,
+    h / np.maximum(seen, 1.0), 1.0)`, without its temporaries over the box.
+
+    Where the density is 0 (most of a scan's box: open space) so is the field, whatever the
+    maximum. Along a run of cells with density in a row, each column's maximum over the
+    window's rows is taken once and the run's windows take the maximum of those (maxima are
+    exact in any order: `_normalised`'s values)."""
+    h, w = density.shape
+    floor = np.float32(1e-3)
+    col_peak = np.empty(w, dtype=np.float32)  # per column c - c_lo of a run
     for i in range(i0, i1):
-        for j in range(j0, j1):
-            if density[i, j] > 0.0:
-                values[i, j] = _normalised(density, rad, i, j)
-            else:
+        r_lo, r_hi = max(0, i - rad), min(h, i + rad + 1)
+        j = j0
+        while j < j1:
+            if not density[i, j] > 0.0:
                 values[i, j] = np.float32(0.0)
+                j += 1
+                continue
+            k = j + 1
+            while k < j1 and density[i, k] > 0.0:
+                k += 1
+            c_lo, c_hi = max(0, j - rad), min(w, k + rad)
+            for c in range(c_lo, c_hi):
+                col_peak[c - c_lo] = density[r_lo, c]
+            for r in range(r_lo + 1, r_hi):
+                for c in range(c_lo, c_hi):
+                    col_peak[c - c_lo] = max(col_peak[c - c_lo], density[r, c])
+            for jj in range(j, k):
+                d = density[i, jj]
+                peak = d
+                for c in range(max(0, jj - rad), min(w, jj + rad + 1)):
+                    peak = max(peak, col_peak[c - c_lo])
+                f = d / max(peak, floor) if peak > floor else np.float32(0.0)
+                if carved:
+                    hit = hits[i, jj]
+                    seen = hit + misses[i, jj]
+                    if seen > np.float32(0.0):
+                        f = f * (hit / max(seen, np.float32(1.0)))
+                values[i, jj] = f
+            j = k
 
 
 @_jit
