@@ -502,17 +502,25 @@ def pyramid_update(  # noqa: PLR0917 - numba takes no keyword-only arguments
         s = 1 << m
         a0 = max(0, r0 - (2 * s - 1))
         b0 = max(0, c0 - (2 * s - 1))
+        cb = min(w, c1)
+        c_in = max(b0, min(cb, w - s))  # columns b0:c_in have their right neighbour on the crop
+        n_in = c_in - b0
+        # The tests per row and per column hoisted out of the inner loop, and its rows sliced
+        # to start at 0 (no negative-index wrapping to test): it compiles to vector minima.
         for r in range(a0, min(h, r1)):
-            for c in range(b0, min(w, c1)):
-                v = levels[m, r, c]
-                if r + s < h:
-                    v = min(v, levels[m, r + s, c])
-                    if c + s < w:
-                        v = min(v, levels[m, r + s, c + s])
-                else:
-                    v = min(v, capf)
-                v = min(v, levels[m, r, c + s]) if c + s < w else min(v, capf)
-                levels[m + 1, r, c] = v
+            here, out = levels[m, r, b0:], levels[m + 1, r, b0:]
+            right = levels[m, r, b0 + s :]
+            if r + s < h:
+                below, below_right = levels[m, r + s, b0:], levels[m, r + s, b0 + s :]
+                for c in range(n_in):
+                    out[c] = min(here[c], below[c], below_right[c], right[c])
+                for c in range(n_in, cb - b0):
+                    out[c] = min(here[c], below[c], capf)
+            else:
+                for c in range(n_in):
+                    out[c] = min(here[c], capf, right[c])
+                for c in range(n_in, cb - b0):
+                    out[c] = min(here[c], capf)
 
 
 @_jit
