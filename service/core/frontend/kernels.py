@@ -547,50 +547,53 @@ def stamp_arguments(  # noqa: PLR0917 - numba takes no keyword-only arguments
 
 
 @_jit
-def stamp_cells(
-    ci: IntArray, cj: IntArray, di: IntArray, dj: IntArray, width: int
-) -> tuple[IntArray, IntArray, IntArray]:
-    """The stamps' cells grouped by cell: (order, cells, starts) with `order` the stable argsort
-    of the flat cell indices (hit-major, as `stamp_arguments`), `cells` the distinct ones
-    ascending, `starts` where each begins in the sorted order. A counting sort over the
-    stamps' box: the same permutation as numpy's stable sort, in linear time."""
+def stamp_cells(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    ci: IntArray, cj: IntArray, di: IntArray, dj: IntArray, width: int, values: FloatArray
+) -> tuple[FloatArray, IntArray, IntArray]:
+    """The stamps' `values` (hit-major, as `stamp_arguments`) grouped by cell: (sorted, cells,
+    starts) with `sorted` = values[order], `order` the stable argsort of the flat cell
+    indices, `cells` the distinct ones ascending, `starts` where each begins in `sorted`. A
+    counting sort over the stamps' box: the same permutation as numpy's stable sort, in
+    linear time, and the gather done in it (numpy's `values[order]` cost as much again)."""
     n, k_n = ci.shape[0], di.shape[0]
     i_lo, i_hi = ci.min() + di.min(), ci.max() + di.max()
     j_lo, j_hi = cj.min() + dj.min(), cj.max() + dj.max()
     bw = j_hi - j_lo + 1
-    # int32 counts and keys: the box and the stamps are far below 2^31 cells, and half the
-    # bytes keep the counting in cache.
-    counts = np.zeros((i_hi - i_lo + 1) * bw, dtype=np.int32)
-    keys = np.empty(n * k_n, dtype=np.int32)
+    # Unsigned keys and counts: an unsigned index is never wrapped as a negative one, so the
+    # loops carry no such test (half the time); a box holds far fewer than 2^32 cells.
+    counts = np.zeros((i_hi - i_lo + 1) * bw, dtype=np.uint32)
+    keys = np.empty(n * k_n, dtype=np.uint32)
+    offsets = np.empty(k_n, dtype=np.int64)  # of the stamp's cells from its centre, in the box
+    for k in range(k_n):
+        offsets[k] = di[k] * bw + dj[k]
     for p in range(n):
         base = (ci[p] - i_lo) * bw + (cj[p] - j_lo)
         for k in range(k_n):
-            key = base + di[k] * bw + dj[k]
-            keys[p * k_n + k] = key
-            counts[key] += 1
+            keys[p * k_n + k] = np.uint32(base + offsets[k])
+    for idx in range(n * k_n):
+        counts[keys[idx]] += np.uint32(1)
     # One pass: each cell's start (an exclusive prefix sum, left in `counts`) and the cells.
     cells = np.empty(n * k_n, dtype=np.int64)
     starts = np.empty(n * k_n, dtype=np.int64)
     d = 0
-    total = 0
-    b = 0
+    total = np.uint32(0)
     for bi in range(i_hi - i_lo + 1):
         row = (bi + i_lo) * width + j_lo
+        row_counts = counts[bi * bw : (bi + 1) * bw]
         for bj in range(bw):
-            c = counts[b]
+            c = row_counts[bj]
             if c > 0:
                 cells[d] = row + bj
                 starts[d] = total
                 d += 1
-            counts[b] = total
+            row_counts[bj] = total
             total += c
-            b += 1
-    order = np.empty(n * k_n, dtype=np.int64)
+    out = np.empty(n * k_n)
     for idx in range(n * k_n):
         key = keys[idx]
-        order[counts[key]] = idx
-        counts[key] += 1
-    return order, cells[:d], starts[:d]
+        out[counts[key]] = values[idx]
+        counts[key] += np.uint32(1)
+    return out, cells[:d], starts[:d]
 
 
 @_jit
@@ -655,36 +658,41 @@ def normalise(  # noqa: PLR0917 - numba takes no keyword-only arguments
     exact in any order: `_normalised`'s values)."""
     h, w = density.shape
     floor = np.float32(1e-3)
-    col_peak = np.empty(w, dtype=np.float32)  # per column c - c_lo of a run
+    col_peak = np.empty(w, dtype=np.float32)  # per column c_lo + c of a run
+    # Rows sliced to start at 0 (no negative-index wrapping to test in the loops).
     for i in range(i0, i1):
         r_lo, r_hi = max(0, i - rad), min(h, i + rad + 1)
-        j = j0
-        while j < j1:
-            if not density[i, j] > 0.0:
-                values[i, j] = np.float32(0.0)
+        dens, field = density[i, j0:j1], values[i, j0:j1]
+        j = 0
+        while j < j1 - j0:
+            if not dens[j] > 0.0:
+                field[j] = np.float32(0.0)
                 j += 1
                 continue
             k = j + 1
-            while k < j1 and density[i, k] > 0.0:
+            while k < j1 - j0 and dens[k] > 0.0:
                 k += 1
-            c_lo, c_hi = max(0, j - rad), min(w, k + rad)
-            for c in range(c_lo, c_hi):
-                col_peak[c - c_lo] = density[r_lo, c]
+            c_lo, c_hi = max(0, j0 + j - rad), min(w, j0 + k + rad)
+            n_c = c_hi - c_lo
+            top = density[r_lo, c_lo:c_hi]
+            for c in range(n_c):
+                col_peak[c] = top[c]
             for r in range(r_lo + 1, r_hi):
-                for c in range(c_lo, c_hi):
-                    col_peak[c - c_lo] = max(col_peak[c - c_lo], density[r, c])
+                row = density[r, c_lo:c_hi]
+                for c in range(n_c):
+                    col_peak[c] = max(col_peak[c], row[c])
             for jj in range(j, k):
-                d = density[i, jj]
+                d = dens[jj]
                 peak = d
-                for c in range(max(0, jj - rad), min(w, jj + rad + 1)):
-                    peak = max(peak, col_peak[c - c_lo])
+                for c in range(max(0, j0 + jj - rad) - c_lo, min(w, j0 + jj + rad + 1) - c_lo):
+                    peak = max(peak, col_peak[c])
                 f = d / max(peak, floor) if peak > floor else np.float32(0.0)
                 if carved:
-                    hit = hits[i, jj]
-                    seen = hit + misses[i, jj]
+                    hit = hits[i, j0 + jj]
+                    seen = hit + misses[i, j0 + jj]
                     if seen > np.float32(0.0):
                         f = f * (hit / max(seen, np.float32(1.0)))
-                values[i, jj] = f
+                field[jj] = f
             j = k
 
 

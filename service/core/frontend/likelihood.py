@@ -147,8 +147,10 @@ class LikelihoodGrid:
             v, u, ci, cj, self._di, self._dj, res * res, self.hit_sigma_m**2
         )
         val = np.exp(arg)
-        order, cells, starts = kernels.stamp_cells(ci, cj, self._di, self._dj, self.values.shape[1])
-        added = np.add.reduceat(val[order], starts)
+        grouped, cells, starts = kernels.stamp_cells(
+            ci, cj, self._di, self._dj, self.values.shape[1], val
+        )
+        added = np.add.reduceat(grouped, starts)
         carved = margin_m is not None
         kernels.stamp_add(
             self.density, self.hits, self.stamped, cells, added, self.inserted, carved
