@@ -719,7 +719,20 @@ def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
     Returns the box (rows i0:i1, columns j0:j1) of the field changed."""
     h, w = density.shape
     bi0, bi1, bj0, bj1 = h, 0, w, 0
-    for k in range(end_rows.shape[0]):
+    n = end_rows.shape[0]
+    max_steps = 1
+    for k in range(n):  # the most steps a ray takes (as below)
+        dr = end_rows[k] - origin_row
+        dc = end_cols[k] - origin_col
+        free = math.sqrt(dr * dr + dc * dc) - margin_cells
+        if free > 0.0:
+            max_steps = max(max_steps, int(free * 2.0) + 1)
+    rows = np.empty(max_steps, dtype=np.int64)  # a ray's cells, step by step ...
+    cols = np.empty(max_steps, dtype=np.int64)
+    crossed = np.empty(max_steps, dtype=np.int64)  # ... and the distinct ones, flat
+    flat_stamped, flat_misses = stamped.reshape(-1), misses.reshape(-1)
+    flat_density = density.reshape(-1)
+    for k in range(n):
         dr = end_rows[k] - origin_row
         dc = end_cols[k] - origin_col
         length = math.sqrt(dr * dr + dc * dc)
@@ -727,19 +740,41 @@ def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
         if free <= 0.0:
             continue
         steps = int(free * 2.0) + 1  # half a cell apart: no cell crossed is skipped
-        prev_i, prev_j = -1, -1
-        for s in range(steps):
+        for s in range(steps):  # (no branch: compiles to vector arithmetic)
             t = 0.5 * s / length
-            i = math.floor(origin_row + dr * t + 0.5)
-            j = math.floor(origin_col + dc * t + 0.5)
-            if (i == prev_i and j == prev_j) or i < 0 or j < 0 or i >= h or j >= w:
+            rows[s] = math.floor(origin_row + dr * t + 0.5)
+            cols[s] = math.floor(origin_col + dc * t + 0.5)
+        # A step's cell counts when it is on the grid and not the last counted one. Rows and
+        # columns are monotonic along the ray (every rounding is), so with both ends on the
+        # grid every step is, and the last cell counted is the previous step's: the test is
+        # then a comparison with it, without a branch.
+        last = steps - 1
+        n_crossed = 0
+        on_grid = min(rows[0], rows[last]) >= 0 and max(rows[0], rows[last]) < h
+        if on_grid and min(cols[0], cols[last]) >= 0 and max(cols[0], cols[last]) < w:
+            prev = -1
+            for s in range(steps):
+                cell = rows[s] * w + cols[s]
+                crossed[n_crossed] = cell
+                n_crossed += cell != prev
+                prev = cell
+        else:
+            prev_i, prev_j = -1, -1
+            for s in range(steps):
+                i, j = rows[s], cols[s]
+                if (i == prev_i and j == prev_j) or i < 0 or j < 0 or i >= h or j >= w:
+                    continue
+                prev_i, prev_j = i, j
+                crossed[n_crossed] = i * w + j
+                n_crossed += 1
+        for q in range(n_crossed):
+            cell = crossed[q]
+            if flat_stamped[cell] == this_insert:
                 continue
-            prev_i, prev_j = i, j
-            if stamped[i, j] == this_insert:
+            flat_misses[cell] += np.float32(1.0)
+            if not flat_density[cell] > 0.0:
                 continue
-            misses[i, j] += np.float32(1.0)
-            if not density[i, j] > 0.0:
-                continue
+            i, j = cell // w, cell % w
             surface = _normalised(density, rad, i, j)
             values[i, j] = surface * hits[i, j] / (hits[i, j] + misses[i, j])
             bi0, bi1 = min(bi0, i), max(bi1, i + 1)

@@ -235,6 +235,77 @@ def test_carved_insert_is_numpys_bit_for_bit() -> None:
     assert np.any((ref.values > 0.0) & (ref.values < 0.5))  # and faded some of the field
 
 
+def _plain_carve(  # noqa: PLR0917 - kernels.carve's arguments
+    density: np.ndarray,
+    values: np.ndarray,
+    hits: np.ndarray,
+    misses: np.ndarray,
+    stamped: np.ndarray,
+    this_insert: int,
+    rad: int,
+    origin_row: float,
+    origin_col: float,
+    end_rows: np.ndarray,
+    end_cols: np.ndarray,
+    margin_cells: float,
+) -> tuple[int, int, int, int]:
+    """`kernels.carve` written plainly, step by step (the reference of its compiled passes)."""
+    h, w = density.shape
+    box = [h, 0, w, 0]
+    for end_row, end_col in zip(end_rows, end_cols, strict=True):
+        dr, dc = float(end_row) - origin_row, float(end_col) - origin_col
+        length = math.sqrt(dr * dr + dc * dc)
+        free = length - margin_cells
+        if free <= 0.0:
+            continue
+        prev = (-1, -1)
+        for s in range(int(free * 2.0) + 1):
+            t = 0.5 * s / length
+            i = math.floor(origin_row + dr * t + 0.5)
+            j = math.floor(origin_col + dc * t + 0.5)
+            if (i, j) == prev or not (0 <= i < h and 0 <= j < w):
+                continue
+            prev = (i, j)
+            if stamped[i, j] == this_insert:
+                continue
+            misses[i, j] += np.float32(1.0)
+            if not density[i, j] > 0.0:
+                continue
+            window = density[max(0, i - rad) : i + rad + 1, max(0, j - rad) : j + rad + 1]
+            peak = window.max()
+            surface = density[i, j] / max(peak, np.float32(1e-3)) if peak > 1e-3 else 0.0
+            values[i, j] = np.float32(surface) * hits[i, j] / (hits[i, j] + misses[i, j])
+            box = [min(box[0], i), max(box[1], i + 1), min(box[2], j), max(box[3], j + 1)]
+    return box[0], box[1], box[2], box[3]
+
+
+@pytest.mark.parametrize("origin", [(20.3, 30.6), (-6.2, 12.9), (45.5, 70.2)])
+def test_carve_is_the_plain_step_by_step_loop(origin: tuple[float, float]) -> None:
+    """Rays from inside and from outside the grid, ending on it and off it, over a random
+    surface: the compiled carve counts the same misses and writes the same field, bit for bit,
+    and returns the same box, as the plain loop over every step."""
+    rng = np.random.default_rng(3)
+    h, w, rad = 50, 60, 3
+    density = np.where(rng.random((h, w)) < 0.3, rng.random((h, w)), 0.0).astype(np.float32)
+    hits = np.where(density > 0.0, rng.integers(1, 5, (h, w)), 0).astype(np.float32)
+    misses = rng.integers(0, 3, (h, w)).astype(np.float32)
+    stamped = rng.integers(0, 3, (h, w)).astype(np.int32)
+    values = rng.random((h, w)).astype(np.float32)
+    angles = rng.uniform(-math.pi, math.pi, 300)
+    reach = rng.uniform(0.5, 60.0, 300)
+    end_rows = origin[0] + reach * np.sin(angles)
+    end_cols = origin[1] + reach * np.cos(angles)
+    ours = [a.copy() for a in (values, misses)]
+    ref = [a.copy() for a in (values, misses)]
+    args = (origin[0], origin[1], end_rows, end_cols, 2.0)
+    got = kernels.carve(density, ours[0], hits, ours[1], stamped, 2, rad, *args)
+    want = _plain_carve(density, ref[0], hits, ref[1], stamped, 2, rad, *args)
+    assert got == want
+    assert np.array_equal(ours[0].view(np.int32), ref[0].view(np.int32))
+    assert np.array_equal(ours[1].view(np.int32), ref[1].view(np.int32))
+    assert want[1] > want[0]  # (surfaces were crossed)
+
+
 @pytest.mark.parametrize("bin_m", [0.02, 0.05, 0.1])
 def test_hard_energies_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
     """The walls' coarse histogram: Σ h² per angle, as `np.bincount` of the bin indices gives it
