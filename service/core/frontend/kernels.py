@@ -502,17 +502,25 @@ def pyramid_update(  # noqa: PLR0917 - numba takes no keyword-only arguments
         s = 1 << m
         a0 = max(0, r0 - (2 * s - 1))
         b0 = max(0, c0 - (2 * s - 1))
+        cb = min(w, c1)
+        c_in = max(b0, min(cb, w - s))  # columns b0:c_in have their right neighbour on the crop
+        n_in = c_in - b0
+        # The tests per row and per column hoisted out of the inner loop, and its rows sliced
+        # to start at 0 (no negative-index wrapping to test): it compiles to vector minima.
         for r in range(a0, min(h, r1)):
-            for c in range(b0, min(w, c1)):
-                v = levels[m, r, c]
-                if r + s < h:
-                    v = min(v, levels[m, r + s, c])
-                    if c + s < w:
-                        v = min(v, levels[m, r + s, c + s])
-                else:
-                    v = min(v, capf)
-                v = min(v, levels[m, r, c + s]) if c + s < w else min(v, capf)
-                levels[m + 1, r, c] = v
+            here, out = levels[m, r, b0:], levels[m + 1, r, b0:]
+            right = levels[m, r, b0 + s :]
+            if r + s < h:
+                below, below_right = levels[m, r + s, b0:], levels[m, r + s, b0 + s :]
+                for c in range(n_in):
+                    out[c] = min(here[c], below[c], below_right[c], right[c])
+                for c in range(n_in, cb - b0):
+                    out[c] = min(here[c], below[c], capf)
+            else:
+                for c in range(n_in):
+                    out[c] = min(here[c], capf, right[c])
+                for c in range(n_in, cb - b0):
+                    out[c] = min(here[c], capf)
 
 
 @_jit
@@ -539,43 +547,75 @@ def stamp_arguments(  # noqa: PLR0917 - numba takes no keyword-only arguments
 
 
 @_jit
-def stamp_cells(
-    ci: IntArray, cj: IntArray, di: IntArray, dj: IntArray, width: int
-) -> tuple[IntArray, IntArray, IntArray]:
-    """The stamps' cells grouped by cell: (order, cells, starts) with `order` the stable argsort
-    of the flat cell indices (hit-major, as `stamp_arguments`), `cells` the distinct ones
-    ascending, `starts` where each begins in the sorted order. A counting sort over the
-    stamps' box: the same permutation as numpy's stable sort, in linear time."""
+def stamp_cells(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    ci: IntArray, cj: IntArray, di: IntArray, dj: IntArray, width: int, values: FloatArray
+) -> tuple[FloatArray, IntArray, IntArray]:
+    """The stamps' `values` (hit-major, as `stamp_arguments`) grouped by cell: (sorted, cells,
+    starts) with `sorted` = values[order], `order` the stable argsort of the flat cell
+    indices, `cells` the distinct ones ascending, `starts` where each begins in `sorted`. A
+    counting sort over the stamps' box: the same permutation as numpy's stable sort, in
+    linear time, and the gather done in it (numpy's `values[order]` cost as much again)."""
     n, k_n = ci.shape[0], di.shape[0]
     i_lo, i_hi = ci.min() + di.min(), ci.max() + di.max()
     j_lo, j_hi = cj.min() + dj.min(), cj.max() + dj.max()
     bw = j_hi - j_lo + 1
-    counts = np.zeros((i_hi - i_lo + 1) * bw + 1, dtype=np.int64)
-    keys = np.empty(n * k_n, dtype=np.int64)
+    # Unsigned keys and counts: an unsigned index is never wrapped as a negative one, so the
+    # loops carry no such test (half the time); a box holds far fewer than 2^32 cells.
+    counts = np.zeros((i_hi - i_lo + 1) * bw, dtype=np.uint32)
+    keys = np.empty(n * k_n, dtype=np.uint32)
+    offsets = np.empty(k_n, dtype=np.int64)  # of the stamp's cells from its centre, in the box
+    for k in range(k_n):
+        offsets[k] = di[k] * bw + dj[k]
     for p in range(n):
+        base = (ci[p] - i_lo) * bw + (cj[p] - j_lo)
         for k in range(k_n):
-            key = (ci[p] + di[k] - i_lo) * bw + (cj[p] + dj[k] - j_lo)
-            keys[p * k_n + k] = key
-            counts[key + 1] += 1
-    distinct = 0
-    for b in range(1, counts.shape[0]):
-        if counts[b] > 0:
-            distinct += 1
-        counts[b] += counts[b - 1]
-    cells = np.empty(distinct, dtype=np.int64)
-    starts = np.empty(distinct, dtype=np.int64)
+            keys[p * k_n + k] = np.uint32(base + offsets[k])
+    for idx in range(n * k_n):
+        counts[keys[idx]] += np.uint32(1)
+    # One pass: each cell's start (an exclusive prefix sum, left in `counts`) and the cells.
+    cells = np.empty(n * k_n, dtype=np.int64)
+    starts = np.empty(n * k_n, dtype=np.int64)
     d = 0
-    for b in range(counts.shape[0] - 1):
-        if counts[b + 1] > counts[b]:
-            cells[d] = (b // bw + i_lo) * width + (b % bw + j_lo)
-            starts[d] = counts[b]
-            d += 1
-    order = np.empty(n * k_n, dtype=np.int64)
+    total = np.uint32(0)
+    for bi in range(i_hi - i_lo + 1):
+        row = (bi + i_lo) * width + j_lo
+        row_counts = counts[bi * bw : (bi + 1) * bw]
+        for bj in range(bw):
+            c = row_counts[bj]
+            if c > 0:
+                cells[d] = row + bj
+                starts[d] = total
+                d += 1
+            row_counts[bj] = total
+            total += c
+    out = np.empty(n * k_n)
     for idx in range(n * k_n):
         key = keys[idx]
-        order[counts[key]] = idx
-        counts[key] += 1
-    return order, cells, starts
+        out[counts[key]] = values[idx]
+        counts[key] += np.uint32(1)
+    return out, cells[:d], starts[:d]
+
+
+@_jit
+def stamp_add(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    density: F32Array,
+    hits: F32Array,
+    stamped: npt.NDArray[np.int32],
+    cells: IntArray,
+    added: FloatArray,
+    this_insert: int,
+    carved: bool,
+) -> None:
+    """`LikelihoodGrid.insert`'s scatter of the stamps' sums (`added`, per distinct cell of
+    `cells`, flat) into the density, as float32 (numpy's `density.flat[cells] +=
+    added.astype(float32)`); with free space carved, a hit and this insert's mark per cell."""
+    dens, hit, mark = density.reshape(-1), hits.reshape(-1), stamped.reshape(-1)
+    for d in range(cells.shape[0]):
+        c = cells[d]
+        dens[c] = dens[c] + np.float32(added[d])
+        if carved:
+            hit[c] = hit[c] + np.float32(1.0)
+            mark[c] = this_insert
 
 
 @_jit
@@ -595,19 +635,65 @@ def _normalised(density: F32Array, rad: int, i: int, j: int) -> np.float32:
 
 @_jit
 def normalise(  # noqa: PLR0917 - numba takes no keyword-only arguments
-    density: F32Array, values: F32Array, rad: int, i0: int, i1: int, j0: int, j1: int
+    density: F32Array,
+    values: F32Array,
+    hits: F32Array,
+    misses: F32Array,
+    carved: bool,
+    rad: int,
+    i0: int,
+    i1: int,
+    j0: int,
+    j1: int,
 ) -> None:
     """`LikelihoodGrid._normalise` over rows i0:i1, columns j0:j1 (within the grid): the field
     = density / its maximum over the (2·rad + 1)² window (clipped to the grid), 0 where that
-    maximum is at most 1e-3. Where the density is 0 (most of a scan's box: open space) so is
-    the field, whatever the maximum, so the window is read only where it is not
-    (`_normalised`)."""
+    maximum is at most 1e-3; with free space `carved`, times hits / max(hits + misses, 1)
+    where hits + misses > 0, all in float32: the bits of numpy's `values *= np.where(seen > 0,
+    h / np.maximum(seen, 1.0), 1.0)`, without its temporaries over the box.
+
+    Where the density is 0 (most of a scan's box: open space) so is the field, whatever the
+    maximum. Along a run of cells with density in a row, each column's maximum over the
+    window's rows is taken once and the run's windows take the maximum of those (maxima are
+    exact in any order: `_normalised`'s values)."""
+    h, w = density.shape
+    floor = np.float32(1e-3)
+    col_peak = np.empty(w, dtype=np.float32)  # per column c_lo + c of a run
+    # Rows sliced to start at 0 (no negative-index wrapping to test in the loops).
     for i in range(i0, i1):
-        for j in range(j0, j1):
-            if density[i, j] > 0.0:
-                values[i, j] = _normalised(density, rad, i, j)
-            else:
-                values[i, j] = np.float32(0.0)
+        r_lo, r_hi = max(0, i - rad), min(h, i + rad + 1)
+        dens, field = density[i, j0:j1], values[i, j0:j1]
+        j = 0
+        while j < j1 - j0:
+            if not dens[j] > 0.0:
+                field[j] = np.float32(0.0)
+                j += 1
+                continue
+            k = j + 1
+            while k < j1 - j0 and dens[k] > 0.0:
+                k += 1
+            c_lo, c_hi = max(0, j0 + j - rad), min(w, j0 + k + rad)
+            n_c = c_hi - c_lo
+            top = density[r_lo, c_lo:c_hi]
+            for c in range(n_c):
+                col_peak[c] = top[c]
+            for r in range(r_lo + 1, r_hi):
+                row = density[r, c_lo:c_hi]
+                for c in range(n_c):
+                    col_peak[c] = max(col_peak[c], row[c])
+            for jj in range(j, k):
+                d = dens[jj]
+                peak = d
+                for c in range(max(0, j0 + jj - rad) - c_lo, min(w, j0 + jj + rad + 1) - c_lo):
+                    peak = max(peak, col_peak[c])
+                f = d / max(peak, floor) if peak > floor else np.float32(0.0)
+                if carved:
+                    hit = hits[i, j0 + jj]
+                    seen = hit + misses[i, j0 + jj]
+                    if seen > np.float32(0.0):
+                        f = f * (hit / max(seen, np.float32(1.0)))
+                field[jj] = f
+            j = k
 
 
 @_jit
@@ -633,7 +719,20 @@ def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
     Returns the box (rows i0:i1, columns j0:j1) of the field changed."""
     h, w = density.shape
     bi0, bi1, bj0, bj1 = h, 0, w, 0
-    for k in range(end_rows.shape[0]):
+    n = end_rows.shape[0]
+    max_steps = 1
+    for k in range(n):  # the most steps a ray takes (as below)
+        dr = end_rows[k] - origin_row
+        dc = end_cols[k] - origin_col
+        free = math.sqrt(dr * dr + dc * dc) - margin_cells
+        if free > 0.0:
+            max_steps = max(max_steps, int(free * 2.0) + 1)
+    rows = np.empty(max_steps, dtype=np.int64)  # a ray's cells, step by step ...
+    cols = np.empty(max_steps, dtype=np.int64)
+    crossed = np.empty(max_steps, dtype=np.int64)  # ... and the distinct ones, flat
+    flat_stamped, flat_misses = stamped.reshape(-1), misses.reshape(-1)
+    flat_density = density.reshape(-1)
+    for k in range(n):
         dr = end_rows[k] - origin_row
         dc = end_cols[k] - origin_col
         length = math.sqrt(dr * dr + dc * dc)
@@ -641,19 +740,41 @@ def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
         if free <= 0.0:
             continue
         steps = int(free * 2.0) + 1  # half a cell apart: no cell crossed is skipped
-        prev_i, prev_j = -1, -1
-        for s in range(steps):
+        for s in range(steps):  # (no branch: compiles to vector arithmetic)
             t = 0.5 * s / length
-            i = math.floor(origin_row + dr * t + 0.5)
-            j = math.floor(origin_col + dc * t + 0.5)
-            if (i == prev_i and j == prev_j) or i < 0 or j < 0 or i >= h or j >= w:
+            rows[s] = math.floor(origin_row + dr * t + 0.5)
+            cols[s] = math.floor(origin_col + dc * t + 0.5)
+        # A step's cell counts when it is on the grid and not the last counted one. Rows and
+        # columns are monotonic along the ray (every rounding is), so with both ends on the
+        # grid every step is, and the last cell counted is the previous step's: the test is
+        # then a comparison with it, without a branch.
+        last = steps - 1
+        n_crossed = 0
+        on_grid = min(rows[0], rows[last]) >= 0 and max(rows[0], rows[last]) < h
+        if on_grid and min(cols[0], cols[last]) >= 0 and max(cols[0], cols[last]) < w:
+            prev = -1
+            for s in range(steps):
+                cell = rows[s] * w + cols[s]
+                crossed[n_crossed] = cell
+                n_crossed += cell != prev
+                prev = cell
+        else:
+            prev_i, prev_j = -1, -1
+            for s in range(steps):
+                i, j = rows[s], cols[s]
+                if (i == prev_i and j == prev_j) or i < 0 or j < 0 or i >= h or j >= w:
+                    continue
+                prev_i, prev_j = i, j
+                crossed[n_crossed] = i * w + j
+                n_crossed += 1
+        for q in range(n_crossed):
+            cell = crossed[q]
+            if flat_stamped[cell] == this_insert:
                 continue
-            prev_i, prev_j = i, j
-            if stamped[i, j] == this_insert:
+            flat_misses[cell] += np.float32(1.0)
+            if not flat_density[cell] > 0.0:
                 continue
-            misses[i, j] += np.float32(1.0)
-            if not density[i, j] > 0.0:
-                continue
+            i, j = cell // w, cell % w
             surface = _normalised(density, rad, i, j)
             values[i, j] = surface * hits[i, j] / (hits[i, j] + misses[i, j])
             bi0, bi1 = min(bi0, i), max(bi1, i + 1)

@@ -147,9 +147,14 @@ class LikelihoodGrid:
             v, u, ci, cj, self._di, self._dj, res * res, self.hit_sigma_m**2
         )
         val = np.exp(arg)
-        order, cells, starts = kernels.stamp_cells(ci, cj, self._di, self._dj, self.values.shape[1])
-        added = np.add.reduceat(val[order], starts)
-        self.density.reshape(-1)[cells] += added.astype(np.float32)
+        grouped, cells, starts = kernels.stamp_cells(
+            ci, cj, self._di, self._dj, self.values.shape[1], val
+        )
+        added = np.add.reduceat(grouped, starts)
+        carved = margin_m is not None
+        kernels.stamp_add(
+            self.density, self.hits, self.stamped, cells, added, self.inserted, carved
+        )
         rad = self.radius_cells
         box = (
             int(ci.min()) - rad,
@@ -157,18 +162,8 @@ class LikelihoodGrid:
             int(cj.min()) - rad,
             int(cj.max()) + rad + 1,
         )
-        if margin_m is None:
-            self._normalise(*box)
-            return
-        self.hits.reshape(-1)[cells] += np.float32(1.0)
-        self.stamped.reshape(-1)[cells] = self.inserted
-        i0, i1, j0, j1 = self._normalise(*box)
-        h = self.hits[i0:i1, j0:j1]
-        seen = h + self.misses[i0:i1, j0:j1]
-        self.values[i0:i1, j0:j1] *= np.where(seen > 0.0, h / np.maximum(seen, 1.0), 1.0).astype(
-            np.float32
-        )
-        if rays is None:
+        self._normalise(*box)
+        if rays is None or margin_m is None:
             return
         orig_v, orig_u = self.cell_coords(rays[0])
         end_v, end_u = self.cell_coords(rays[1])
@@ -191,10 +186,19 @@ class LikelihoodGrid:
 
     def _normalise(self, i0: int, i1: int, j0: int, j1: int) -> tuple[int, int, int, int]:
         """field = density / its maximum within the stamp radius, over rows i0:i1, columns
-        j0:j1: the surface's profile across it, peaking at 1 on the mean of its hits."""
+        j0:j1: the surface's profile across it, peaking at 1 on the mean of its hits; with free
+        space carved, times hits / (hits + misses) (at least 1) where a cell was seen."""
         h, w = self.values.shape
         changed = (max(0, i0), min(h, i1), max(0, j0), min(w, j1))
-        kernels.normalise(self.density, self.values, self.radius_cells, *changed)
+        kernels.normalise(
+            self.density,
+            self.values,
+            self.hits,
+            self.misses,
+            self.carve_margin_m is not None,
+            self.radius_cells,
+            *changed,
+        )
         self._mark_dirty(changed)
         return changed
 

@@ -186,6 +186,139 @@ def _numpy_hard_counts(points: np.ndarray, angles: np.ndarray, bin_m: float) -> 
     return counts.reshape(2 * k, width)
 
 
+def _numpy_carved_insert(
+    grid: LikelihoodGrid, points_map_m: np.ndarray, origin_m: tuple[float, float], ends: np.ndarray
+) -> None:
+    """`LikelihoodGrid.insert` with free space carved, as numpy computes it (the reference of
+    the fused kernels): the stamps (`_numpy_insert`), a hit and this insert's mark per stamped
+    cell, the field × hits / max(hits + misses, 1) over the whole box in float32 with numpy's
+    temporaries, then the rays (`kernels.carve`, as the grid calls it)."""
+    grid.inserted += 1
+    grid._ensure(np.vstack((points_map_m, [origin_m], ends)))
+    rad = grid.radius_cells
+    v, u = grid.cell_coords(points_map_m)
+    ci, cj = np.rint(v).astype(np.int64), np.rint(u).astype(np.int64)
+    cells = np.unique(
+        ((ci[:, None] + grid._di) * grid.values.shape[1] + cj[:, None] + grid._dj).ravel()
+    )
+    _numpy_insert(grid, points_map_m)
+    grid.hits.reshape(-1)[cells] += np.float32(1.0)
+    grid.stamped.reshape(-1)[cells] = grid.inserted
+    h, w = grid.values.shape
+    i0, i1 = max(0, int(ci.min()) - rad), min(h, int(ci.max()) + rad + 1)
+    j0, j1 = max(0, int(cj.min()) - rad), min(w, int(cj.max()) + rad + 1)
+    hits = grid.hits[i0:i1, j0:j1]
+    seen = hits + grid.misses[i0:i1, j0:j1]
+    ratio = np.where(seen > 0.0, hits / np.maximum(seen, 1.0), 1.0).astype(np.float32)
+    grid.values[i0:i1, j0:j1] *= ratio
+    orig_v, orig_u = grid.cell_coords(np.asarray([origin_m]))
+    end_v, end_u = grid.cell_coords(ends)
+    kernels.carve(
+        grid.density, grid.values, grid.hits, grid.misses, grid.stamped, grid.inserted, rad,
+        float(orig_v[0]), float(orig_u[0]), end_v, end_u, grid.carve_margin_m / grid.resolution_m,
+    )  # fmt: skip
+
+
+def test_carved_insert_is_numpys_bit_for_bit() -> None:
+    """Keyframes moving through a room past a walking person, inserted with free space carved
+    by the fused kernels and by numpy alone: every array the same, bit for bit (the field's
+    cells re-normalised where the rays of earlier keyframes wrote them, and where the hits ×
+    seen ratio is exactly 0 or 1)."""
+    rng = np.random.default_rng(9)
+    margin_m = 0.1
+    ours = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, margin_m)
+    ref = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m, margin_m)
+    room = [[0, 0, 10, 0], [10, 0, 10, 7], [10, 7, 0, 7], [0, 7, 0, 0], [4, 2, 5, 2], [5, 2, 5, 3]]
+    for step in range(10):
+        x_m = 1.5 + 0.6 * step
+        person = [[x_m + 1.5, 4.8, x_m + 1.9, 4.8], [x_m + 1.9, 4.8, x_m + 1.9, 5.2]]
+        world = world_of([*room, *person], 10.0, 7.0)
+        pose = Pose2D(x_m, 3.5 + 0.3 * math.sin(step), 0.2 * step)
+        returns = scan_of(world, pose, rng).points_xy_m()
+        pts = surface_in_map(returns, pose, PARAMS)
+        ends = rotate_points(returns, pose.theta_rad) + np.array([pose.x_m, pose.y_m])
+        ours.insert(pts, (pose.x_m, pose.y_m), ends)
+        _numpy_carved_insert(ref, pts, (pose.x_m, pose.y_m), ends)
+        assert ours.origin_m == ref.origin_m
+        for name in ("values", "density", "hits", "misses", "stamped"):
+            a, b = getattr(ours, name), getattr(ref, name)
+            assert a.dtype == b.dtype
+            assert np.array_equal(a.view(np.int32), b.view(np.int32)), (step, name)
+    assert np.any(ref.misses > 0.0)  # the rays carved
+    assert np.any((ref.values > 0.0) & (ref.values < 0.5))  # and faded some of the field
+
+
+def _plain_carve(  # noqa: PLR0917 - kernels.carve's arguments
+    density: np.ndarray,
+    values: np.ndarray,
+    hits: np.ndarray,
+    misses: np.ndarray,
+    stamped: np.ndarray,
+    this_insert: int,
+    rad: int,
+    origin_row: float,
+    origin_col: float,
+    end_rows: np.ndarray,
+    end_cols: np.ndarray,
+    margin_cells: float,
+) -> tuple[int, int, int, int]:
+    """`kernels.carve` written plainly, step by step (the reference of its compiled passes)."""
+    h, w = density.shape
+    box = [h, 0, w, 0]
+    for end_row, end_col in zip(end_rows, end_cols, strict=True):
+        dr, dc = float(end_row) - origin_row, float(end_col) - origin_col
+        length = math.sqrt(dr * dr + dc * dc)
+        free = length - margin_cells
+        if free <= 0.0:
+            continue
+        prev = (-1, -1)
+        for s in range(int(free * 2.0) + 1):
+            t = 0.5 * s / length
+            i = math.floor(origin_row + dr * t + 0.5)
+            j = math.floor(origin_col + dc * t + 0.5)
+            if (i, j) == prev or not (0 <= i < h and 0 <= j < w):
+                continue
+            prev = (i, j)
+            if stamped[i, j] == this_insert:
+                continue
+            misses[i, j] += np.float32(1.0)
+            if not density[i, j] > 0.0:
+                continue
+            window = density[max(0, i - rad) : i + rad + 1, max(0, j - rad) : j + rad + 1]
+            peak = window.max()
+            surface = density[i, j] / max(peak, np.float32(1e-3)) if peak > 1e-3 else 0.0
+            values[i, j] = np.float32(surface) * hits[i, j] / (hits[i, j] + misses[i, j])
+            box = [min(box[0], i), max(box[1], i + 1), min(box[2], j), max(box[3], j + 1)]
+    return box[0], box[1], box[2], box[3]
+
+
+@pytest.mark.parametrize("origin", [(20.3, 30.6), (-6.2, 12.9), (45.5, 70.2)])
+def test_carve_is_the_plain_step_by_step_loop(origin: tuple[float, float]) -> None:
+    """Rays from inside and from outside the grid, ending on it and off it, over a random
+    surface: the compiled carve counts the same misses and writes the same field, bit for bit,
+    and returns the same box, as the plain loop over every step."""
+    rng = np.random.default_rng(3)
+    h, w, rad = 50, 60, 3
+    density = np.where(rng.random((h, w)) < 0.3, rng.random((h, w)), 0.0).astype(np.float32)
+    hits = np.where(density > 0.0, rng.integers(1, 5, (h, w)), 0).astype(np.float32)
+    misses = rng.integers(0, 3, (h, w)).astype(np.float32)
+    stamped = rng.integers(0, 3, (h, w)).astype(np.int32)
+    values = rng.random((h, w)).astype(np.float32)
+    angles = rng.uniform(-math.pi, math.pi, 300)
+    reach = rng.uniform(0.5, 60.0, 300)
+    end_rows = origin[0] + reach * np.sin(angles)
+    end_cols = origin[1] + reach * np.cos(angles)
+    ours = [a.copy() for a in (values, misses)]
+    ref = [a.copy() for a in (values, misses)]
+    args = (origin[0], origin[1], end_rows, end_cols, 2.0)
+    got = kernels.carve(density, ours[0], hits, ours[1], stamped, 2, rad, *args)
+    want = _plain_carve(density, ref[0], hits, ref[1], stamped, 2, rad, *args)
+    assert got == want
+    assert np.array_equal(ours[0].view(np.int32), ref[0].view(np.int32))
+    assert np.array_equal(ours[1].view(np.int32), ref[1].view(np.int32))
+    assert want[1] > want[0]  # (surfaces were crossed)
+
+
 @pytest.mark.parametrize("bin_m", [0.02, 0.05, 0.1])
 def test_hard_energies_and_peaks_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
     """The walls' hard histograms: Σ h² per angle (the coarse search) and the largest bin (the
