@@ -66,7 +66,8 @@ def heading_scores(
     # Hard bins: integer counts, so Σ h² is exact in int64.
     lo, width = _hard_offset(points_xy_m, bin_m)
     columns = _rotation_columns(angles_rad, bin_m)
-    return kernels.hard_energies(points_xy_m, columns, float(lo), width).astype(np.float64)
+    energy, _ = kernels.hard_counts(points_xy_m, columns, float(lo), width)
+    return (energy[:k] + energy[k:]).astype(np.float64)
 
 
 @dataclass(frozen=True, slots=True)
@@ -167,5 +168,5 @@ def _peaks(points_xy_m: FloatArray, angle_rad: float, bin_m: float) -> int:
     hard projection histograms, added."""
     lo, width = _hard_offset(points_xy_m, bin_m)
     columns = _rotation_columns(np.array([angle_rad]), bin_m)
-    peaks = kernels.hard_peaks(points_xy_m, columns, float(lo), width)
+    _, peaks = kernels.hard_counts(points_xy_m, columns, float(lo), width)
     return int(peaks[0] + peaks[1])

@@ -783,22 +783,24 @@ def carve(  # noqa: PLR0917 - numba takes no keyword-only arguments
 
 
 @_jit
-def hard_energies(
+def hard_counts(
     points_xy_m: FloatArray, columns: FloatArray, offset_bins: float, width: int
-) -> IntArray:
-    """`heading.heading_scores` with hard bins: Σ h² of each column's projection histogram (2K
-    columns: x then y coordinates of R(α)·p in bin units, `heading._rotation_columns`), the
-    x and y sums added per angle. Each coordinate is x·c₀ + y·c₁ - offset_bins, rounded as
-    numpy's elementwise ufuncs round it, truncated to its bin; Σ h² grows by 2h + 1 per point
-    that joins a bin of h, so the counts are exact and no (M, 2K) index array is written."""
+) -> tuple[IntArray, IntArray]:
+    """Of each column's hard projection histogram (2K columns: x then y coordinates of R(α)·p
+    in bin units, `heading._rotation_columns`): Σ h² (`heading.heading_scores` with hard bins)
+    and the largest bin (the walls' peak fraction). Each coordinate is x·c₀ + y·c₁ -
+    offset_bins, rounded as numpy's elementwise ufuncs round it, truncated to its bin; Σ h²
+    grows by 2h + 1 per point that joins a bin of h, so the counts are exact (the same as
+    numpy's `bincount` of those bins) and no (M, 2K) index array is written."""
     n_cols = columns.shape[1]
-    k = n_cols // 2
     hist = np.zeros(width, dtype=np.int64)
     energy = np.zeros(n_cols, dtype=np.int64)
+    peaks = np.zeros(n_cols, dtype=np.int64)
     for col in range(n_cols):
         c0, c1 = columns[0, col], columns[1, col]
         hist[:] = 0
         e = 0
+        peak = 0
         for p in range(points_xy_m.shape[0]):
             a = points_xy_m[p, 0] * c0
             b = points_xy_m[p, 1] * c1
@@ -807,33 +809,10 @@ def hard_energies(
             i = int(b)
             e += 2 * hist[i] + 1
             hist[i] += 1
-        energy[col] = e
-    return energy[:k] + energy[k:]
-
-
-@_jit
-def hard_peaks(
-    points_xy_m: FloatArray, columns: FloatArray, offset_bins: float, width: int
-) -> IntArray:
-    """The largest bin of each column's hard projection histogram (the columns and the bins
-    as `hard_energies` forms them: the same bits as numpy's `bincount` of those bins)."""
-    n_cols = columns.shape[1]
-    hist = np.zeros(width, dtype=np.int64)
-    peaks = np.zeros(n_cols, dtype=np.int64)
-    for col in range(n_cols):
-        c0, c1 = columns[0, col], columns[1, col]
-        hist[:] = 0
-        peak = 0
-        for p in range(points_xy_m.shape[0]):
-            a = points_xy_m[p, 0] * c0
-            b = points_xy_m[p, 1] * c1
-            b = a + b
-            b = b - offset_bins
-            i = int(b)
-            hist[i] += 1
             peak = max(peak, hist[i])
+        energy[col] = e
         peaks[col] = peak
-    return peaks
+    return energy, peaks
 
 
 @_jit

@@ -320,7 +320,7 @@ def test_carve_is_the_plain_step_by_step_loop(origin: tuple[float, float]) -> No
 
 
 @pytest.mark.parametrize("bin_m", [0.02, 0.05, 0.1])
-def test_hard_energies_and_peaks_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
+def test_hard_counts_are_numpys_bincount_bit_for_bit(bin_m: float) -> None:
     """The walls' hard histograms: Σ h² per angle (the coarse search) and the largest bin (the
     peak fraction), as `np.bincount` of the bin indices gives them (points on bin edges
     included: a point a bin apart changes the score)."""
