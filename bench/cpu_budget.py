@@ -1,4 +1,4 @@
-"""CPU per scan, per process of the service and per stage of the per-scan path.
+"""CPU per scan, per process of the service, per thread, and per stage of the per-scan path.
 
 `python -m bench.cpu_budget --robots 10,25 [--mapper-processes 2] [--measure-s 15] [--profile]`
 
@@ -6,10 +6,14 @@ CPU time (user + system, from /proc via psutil) per scan is far less sensitive t
 a shared machine than wall time: a process waiting for a core accrues none. Each point is one
 `bench.scale.run_point` run (load generator, 40 Hz per robot); the service's main process and
 each of its children (the mapper processes) are read separately, and divided by the scans the
-service accepted in the window. With `--profile`, py-spy samples each of those processes on its
-own (non-blocking, on-CPU samples only) and each sample is charged to one stage of the path by
-the frames on its stack (`STAGES`, first match wins); a stage's CPU-ms per scan is its share of
-the samples times the process's CPU-ms per scan.
+service accepted in the window; so is each of their threads (`thread_cpu`: exact, from
+/proc/<pid>/task; Python threads named by `py-spy dump`, Zenoh's runtime threads as one).
+With `--profile`, py-spy samples each of those processes on its own (non-blocking) and each
+sample is charged to one stage of the path by the frames on its stack (`STAGES`, first match
+wins); a stage's CPU-ms per scan is its share of the samples times the process's CPU-ms per
+scan. That split is approximate: py-spy counts a thread blocked on a read or a lock as busy
+(it gave a mapper's back-end thread 38 % of the samples where /proc says 5-8 % of the CPU), so
+read it within a thread, beside the exact per-thread figures.
 """
 
 from __future__ import annotations
