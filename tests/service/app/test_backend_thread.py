@@ -59,6 +59,19 @@ def _read(backend: LiveBackend) -> GridImage:
     return image
 
 
+class _Clock:
+    """The back end's `time`: the real clocks, with `monotonic` moved on by `offset_s`."""
+
+    def __init__(self) -> None:
+        self.offset_s = 0.0
+
+    def monotonic(self) -> float:
+        return time.monotonic() + self.offset_s
+
+    def perf_counter(self) -> float:
+        return time.perf_counter()
+
+
 def _same_map(a: GridImage, b: GridImage) -> bool:
     return (a.origin_x_m, a.origin_y_m) == (b.origin_x_m, b.origin_y_m) and np.array_equal(
         a.occupancy, b.occupancy
@@ -73,6 +86,8 @@ def test_the_map_is_composed_only_while_somebody_reads_it(monkeypatch: pytest.Mo
     take that; after `WATCHED_S` without a read it stops again."""
     monkeypatch.setattr(backend_module, "RENDER_PERIOD_S", 0.05)
     monkeypatch.setattr(backend_module, "WATCHED_S", 1.0)
+    clock = _Clock()  # the back end's: moved on past WATCHED_S below instead of slept through
+    monkeypatch.setattr(backend_module, "time", clock)
     scheduler = BackendScheduler()
     session = SlamSession(map_resolution_m=0.05, keep_trajectory=False)
     compose = session.map_image
@@ -121,7 +136,7 @@ def test_the_map_is_composed_only_while_somebody_reads_it(monkeypatch: pytest.Mo
         assert _same_map(_read(backend), compose())
         assert len(composed) == watched
 
-        time.sleep(1.2)  # nobody read it for WATCHED_S
+        clock.offset_s += 1.2  # nobody read it for WATCHED_S
         drive(2)
         assert len(composed) == watched
         assert _same_map(_read(backend), compose())
