@@ -129,9 +129,7 @@ class LaserScan:
     odom: Pose2D | None = None
 
     def angles_rad(self) -> FloatArray:
-        return self.angle_min_rad + self.angle_increment_rad * np.arange(
-            self.ranges_m.shape[0], dtype=np.float64
-        )
+        return _beam_angles(self.angle_min_rad, self.angle_increment_rad, self.ranges_m.shape[0])
 
     def valid_mask(self) -> npt.NDArray[np.bool_]:
         r = self.ranges_m
@@ -146,13 +144,19 @@ class LaserScan:
         return np.column_stack((r * cos[mask], r * sin[mask]))
 
 
+def _beam_angles(angle_min_rad: float, angle_increment_rad: float, n: int) -> FloatArray:
+    """Each of n beams' angle."""
+    out: FloatArray = angle_min_rad + angle_increment_rad * np.arange(n, dtype=np.float64)
+    return out
+
+
 @lru_cache(maxsize=16)
 def _beam_directions(
     angle_min_rad: float, angle_increment_rad: float, n: int
 ) -> tuple[FloatArray, FloatArray]:
-    """cos and sin of each beam's angle (`LaserScan.angles_rad`): a laser's beams are the same
-    every scan, so they are computed once per laser (elementwise, the same bits)."""
-    a = angle_min_rad + angle_increment_rad * np.arange(n, dtype=np.float64)
+    """cos and sin of each beam's angle (`_beam_angles`): a laser's beams are the same every
+    scan, so they are computed once per laser (elementwise, the same bits)."""
+    a = _beam_angles(angle_min_rad, angle_increment_rad, n)
     cos, sin = np.cos(a), np.sin(a)
     cos.flags.writeable = sin.flags.writeable = False
     return cos, sin
