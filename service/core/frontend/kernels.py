@@ -3,8 +3,9 @@
 The search's and the submaps' kernels do the same floating-point operations, in the same order,
 as the numpy code they replace, so the same bits: what numpy computes with its own vectorised
 transcendental functions (log, exp), with BLAS, or in sums whose order numpy chooses (pairwise)
-stays in numpy with the callers. No fastmath: LLVM then neither reorders nor fuses (a·b + c
-stays two roundings).
+stays in numpy with the callers; but the small search's means (`dense_search`) are summed here,
+in numpy's pairwise order addition for addition (`_pairwise_plan`). No fastmath: LLVM then
+neither reorders nor fuses (a·b + c stays two roundings).
 
 The refinement (`gauss_newton`) is the exception: the whole Gauss-Newton loop runs here, the
 scan's sums in one pass over its points, because the dozen evaluations a scan costs were
@@ -335,6 +336,194 @@ def lattice_gather(  # noqa: PLR0917 - numba takes no keyword-only arguments
             cc = _clamp(cells[kk, 1, i] + dc, 0, width - 1)
             out[m, i] = flat[r * width + cc]
     return out
+
+
+@_jit
+def _block_sum(values: FloatArray, lo: int, n: int) -> float:
+    """numpy's `pairwise_sum` (numpy/_core/src/umath/loops_utils.h.src) of values[lo : lo + n]
+    for n ≤ 128, where it does not split: under 8 values, in order from 0.0; else eight
+    interleaved accumulators combined as a tree, then the rest in order."""
+    if n < 8:
+        res: float = 0.0
+        for i in range(lo, lo + n):
+            res += values[i]
+        return res
+    r0, r1, r2, r3 = values[lo], values[lo + 1], values[lo + 2], values[lo + 3]
+    r4, r5, r6, r7 = values[lo + 4], values[lo + 5], values[lo + 6], values[lo + 7]
+    whole = lo + n - n % 8
+    for i in range(lo + 8, whole, 8):
+        r0 += values[i]
+        r1 += values[i + 1]
+        r2 += values[i + 2]
+        r3 += values[i + 3]
+        r4 += values[i + 4]
+        r5 += values[i + 5]
+        r6 += values[i + 6]
+        r7 += values[i + 7]
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for i in range(whole, lo + n):
+        res += values[i]
+    return res
+
+
+# numpy's default buffer (`np.getbufsize()`): a reduction with a cast (float32 summed as float64)
+# runs its inner loop, so its pairwise summation, over at most this many elements at a time.
+_NUMPY_BUFSIZE = 8192
+
+
+@_jit
+def _pairwise_plan(n: int) -> tuple[IntArray, IntArray, IntArray]:
+    """numpy's sum of n float32 values as float64 (`np.add.reduce(..., dtype=float64)` along a
+    contiguous axis, so `mean`'s sum), as a program: from 0.0 (add's identity), each buffer of
+    `_NUMPY_BUFSIZE` values in turn added to it, a buffer summed pairwise: above 128 values its
+    two halves (the first a multiple of 8) summed apart and added, down to blocks of at most
+    128 (`_block_sum`). Returns (ops, block starts, block lengths), ops in postfix order: op
+    ≥ 0 sums block op, -1 adds the last two sums, -2 adds the last sum to the total. (A loop,
+    not recursion: numba's cache does not load recursive functions safely.)"""
+    ops = np.empty(3 * n + 3, dtype=np.int64)
+    starts = np.empty(n + 1, dtype=np.int64)
+    lengths = np.empty(n + 1, dtype=np.int64)
+    stack = np.empty((64, 3), dtype=np.int64)  # (start, length, halves done): n halves per level
+    n_ops, n_blocks = 0, 0
+    for buf in range(0, max(n, 1), _NUMPY_BUFSIZE):
+        stack[0, 0], stack[0, 1], stack[0, 2] = buf, min(_NUMPY_BUFSIZE, n - buf), 0
+        top = 1
+        while top:
+            lo, m, done = stack[top - 1, 0], stack[top - 1, 1], stack[top - 1, 2]
+            if m <= 128:
+                starts[n_blocks], lengths[n_blocks] = lo, m
+                ops[n_ops] = n_blocks
+                n_blocks += 1
+                n_ops += 1
+                top -= 1
+                continue
+            if done == 2:
+                ops[n_ops] = -1
+                n_ops += 1
+                top -= 1
+                continue
+            half = m // 2
+            half -= half % 8
+            stack[top - 1, 2] = done + 1
+            stack[top, 0] = lo if done == 0 else lo + half
+            stack[top, 1] = half if done == 0 else m - half
+            stack[top, 2] = 0
+            top += 1
+        ops[n_ops] = -2
+        n_ops += 1
+    return ops[:n_ops], starts[:n_blocks], lengths[:n_blocks]
+
+
+@_jit
+def _pairwise_sum(
+    values: FloatArray, ops: IntArray, starts: IntArray, lengths: IntArray, sums: FloatArray
+) -> float:
+    """numpy's float64 sum of `values` (float32 values, as float64), by `_pairwise_plan`'s
+    program: the same additions in the same order, the same bits. `sums`: scratch, 64."""
+    total = 0.0
+    top = 0
+    for o in range(ops.shape[0]):
+        op = ops[o]
+        if op >= 0:
+            sums[top] = _block_sum(values, starts[op], lengths[op])
+            top += 1
+        elif op == -1:
+            top -= 1
+            sums[top - 1] = sums[top - 1] + sums[top]
+        else:
+            top -= 1
+            total = total + sums[top]
+    return total
+
+
+@_jit
+def dense_search(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    costs: F32Array,
+    px: FloatArray,
+    py: FloatArray,
+    cos_t: FloatArray,
+    sin_t: FloatArray,
+    half_rows: int,
+    half_cols: int,
+    tx: float,
+    ty: float,
+    origin_x: float,
+    origin_y: float,
+    res: float,
+    scan_weight: float,
+    info: FloatArray,
+    dt_k: FloatArray,
+    wall_cost_k: FloatArray,
+) -> tuple[int, int, int, int]:
+    """`search.lattice_search` on a small lattice: every pose scored, the lowest cost's
+    (rotation index k, row a, column b, poses scored), with the row offset a - half_rows and
+    the column offset b - half_cols. Ties go to the lowest k, then a, then b (the brute force's
+    order: its first minimum). Rotation k is (cos_t, sin_t)[k], at dt_k[k] from the prediction
+    (tx, ty); `wall_cost_k` is the walls' cost per rotation, empty without their prior.
+
+    A pose's cost is `search._Problem.exact`'s, operation for operation: the cost table's
+    value under each point (its cell clamped onto the table, whose border costs the cap, as
+    everything off it does), as float64; their pairwise sum (`_pairwise_sum`: numpy's `mean`
+    along the points, bit for bit) over N; times the scan's weight; plus the motion prior's
+    six terms added left to right; plus the walls' cost. No fastmath: the same bits.
+
+    Per rotation the points' cells (`lattice_gather`'s) and their clamped columns at every
+    column offset are computed once, per row offset their clamped rows; the table is read
+    flat, at unsigned indices (no negative-index test in the inner loop)."""
+    h, w = costs.shape
+    n = px.shape[0]
+    n_rot = cos_t.shape[0]
+    n_rows, n_cols = 2 * half_rows + 1, 2 * half_cols + 1
+    has_wall = wall_cost_k.shape[0] > 0
+    rows0 = np.empty(n, dtype=np.int64)
+    cols0 = np.empty(n, dtype=np.int64)
+    flat = costs.ravel()
+    rows = np.empty(n, dtype=np.uint64)  # clamped, at one row offset
+    cols = np.empty((n_cols, n), dtype=np.uint64)  # clamped, at every column offset
+    looked_up = np.empty(n)
+    ops, starts, lengths = _pairwise_plan(n)
+    sums = np.empty(64)
+    best = math.inf
+    best_k, best_a, best_b = n_rot, n_rows, n_cols
+    for k in range(n_rot):
+        c = cos_t[k]
+        s = sin_t[k]
+        for i in range(n):  # `lattice_gather`'s cells
+            mx = c * px[i] - s * py[i] + tx
+            my = s * px[i] + c * py[i] + ty
+            rows0[i] = int(np.rint((my - origin_y) / res - 0.5))
+            cols0[i] = int(np.rint((mx - origin_x) / res - 0.5))
+        for b in range(n_cols):
+            for i in range(n):
+                cols[b, i] = np.uint64(_clamp(cols0[i] + (b - half_cols), 0, w - 1))
+        dt = dt_k[k]
+        for a in range(n_rows):
+            di = a - half_rows
+            for i in range(n):
+                rows[i] = np.uint64(_clamp(rows0[i] + di, 0, h - 1) * w)
+            dy = di * res
+            for b in range(n_cols):
+                col = cols[b]
+                for i in range(n):
+                    looked_up[i] = flat[rows[i] + col[i]]
+                total_cost = _pairwise_sum(looked_up, ops, starts, lengths, sums)
+                scan = scan_weight * (total_cost / n)
+                dx = (b - half_cols) * res
+                prior = (
+                    info[0, 0] * dx * dx
+                    + info[1, 1] * dy * dy
+                    + info[2, 2] * dt * dt
+                    + 2.0 * info[0, 1] * dx * dy
+                    + 2.0 * info[0, 2] * dx * dt
+                    + 2.0 * info[1, 2] * dy * dt
+                )
+                total = scan + prior
+                if has_wall:
+                    total = total + wall_cost_k[k]
+                # The brute force's first minimum (and the first pose when every cost is +inf).
+                if total < best or (total == best and best_k == n_rot):
+                    best, best_k, best_a, best_b = total, k, a, b
+    return best_k, best_a, best_b, n_rot * n_rows * n_cols
 
 
 @_jit

@@ -32,18 +32,17 @@ bound is below the best pose found so far:
   slack), so ties survive, and ties are broken as the brute force breaks them: lowest rotation
   index, then row-major translation.
 
-The pyramid is per submap: built on a submap's first search and cached beside the grid (held
-weakly), then updated in place over the box each insert changed
+The pyramid is per submap: built on a submap's first tree search and cached beside the grid
+(held weakly), then updated in place over the box each insert changed
 (`LikelihoodGrid.cost_changes_since`; minima are exact in any order: a rebuild's values). It
 is built over the bounding box of the cells that do not cost the cap value, padded by the
 largest block and a margin for later inserts: outside that box every window holds only cells
-at the cap. A lattice small enough (40 Hz) is scored whole instead. The inner loops are
-compiled (`kernels`).
+at the cap. A lattice small enough (40 Hz) is scored whole instead, in one compiled pass that
+reads the cost table itself and needs no pyramid. The inner loops are compiled (`kernels`).
 """
 
 from __future__ import annotations
 
-import functools
 import math
 import weakref
 from dataclasses import dataclass
@@ -60,11 +59,10 @@ IntArray = npt.NDArray[np.int64]
 # The largest pyramid level: windows of 2^6 = 64 cells (3.2 m at 5 cm). A point whose block
 # spans more is bounded by the table's global minimum.
 MAX_LEVEL = 6
-# Single poses scored before each level to tighten the bound to beat.
 # A lattice of at most this many poses is scored whole (measured: below it the tree's numpy
-# overhead per level costs more than the poses it prunes), in batches of _DENSE_BATCH.
+# overhead per level costs more than the poses it prunes).
 _DENSE_MAX_POSES = 2048
-_DENSE_BATCH = 2048
+# Single poses scored before each level to tighten the bound to beat.
 _PROBES = 4
 # A block is pruned when its bound exceeds the best cost by more than this (relative): the
 # bound and the exact cost sum the same float32 values in different orders.
@@ -337,17 +335,32 @@ class _Problem:
         return bound
 
 
-@functools.lru_cache(maxsize=64)
-def _dense_lattice(n_rot: int, n_rows: int, n_cols: int) -> tuple[IntArray, IntArray, IntArray]:
-    """Every pose of a lattice of that size, as (rotation, row, column) indices, in the brute
-    force's order (read-only: shared by every search of that size)."""
-    out = tuple(
-        g.ravel().astype(np.int64)
-        for g in np.meshgrid(np.arange(n_rot), np.arange(n_rows), np.arange(n_cols), indexing="ij")
-    )
-    for a in out:
-        a.flags.writeable = False
-    return out[0], out[1], out[2]
+def _dense_search(
+    grid: LikelihoodGrid, costs: F32Array, pts: FloatArray, lat: Lattice
+) -> tuple[int, int, int, int]:
+    """`lattice_search` on a small lattice (40 Hz: a few cells, a few dozen rotations): every
+    pose scored in one compiled pass (`kernels.dense_search`), which costs less than the tree's
+    levels of small batches, and is the brute force. It reads `costs` itself, not the pyramid's
+    level 0: the two look up the same value at every cell, on the table or off it (the
+    table's border and the crop's edge both cost the cap, and the crop holds every cell that
+    does not), so the pyramid is neither built nor updated here (the next tree search on the
+    submap updates it over the inserts since, or rebuilds it: the same values). The rotations'
+    cos and sin, their offsets from the prediction and the walls' cost are numpy's, as
+    `_Problem`'s."""
+    thetas = lat.thetas_rad
+    wall_cost = np.zeros(0)
+    if lat.wall_heading_rad is not None and math.isfinite(lat.wall_sigma_rad):
+        wall_cost = _huber(
+            _wrap(thetas - lat.wall_heading_rad) / lat.wall_sigma_rad, lat.wall_huber
+        )
+    k, a, b, scored = kernels.dense_search(
+        costs, np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
+        np.cos(thetas), np.sin(thetas), lat.half_rows, lat.half_cols,
+        lat.predicted_xy_m[0], lat.predicted_xy_m[1], grid.origin_m[0], grid.origin_m[1],
+        grid.resolution_m, lat.scan_weight, lat.info_pred,
+        _wrap(thetas - lat.predicted_theta_rad), wall_cost,
+    )  # fmt: skip
+    return k, a - lat.half_rows, b - lat.half_cols, scored
 
 
 def lattice_search(
@@ -360,8 +373,10 @@ def lattice_search(
     """The brute force's lowest-cost lattice pose: (rotation index k, row offset di, column
     offset dj, poses and blocks scored). `costs` is `grid.residual_costs(...)`, whose border
     and everything off the grid cost `off_surface`; `pts` holds at least one point."""
+    n_rot, n_rows, n_cols = lat.thetas_rad.shape[0], 2 * lat.half_rows + 1, 2 * lat.half_cols + 1
+    if n_rot * n_rows * n_cols <= _DENSE_MAX_POSES:
+        return _dense_search(grid, costs, pts, lat)
     prob = _Problem(grid, pyramid_of(grid, costs, off_surface), pts, lat)
-    n_rot, n_rows, n_cols = prob.n_rot, prob.n_rows, prob.n_cols
     depth_t = max(0, (max(n_rows, n_cols) - 1).bit_length())  # 2^depth_t ≥ the window
     # Root rotation blocks of 2^(depth_t + 1): the farthest point then moves about as far as a
     # root block translates.
@@ -376,16 +391,6 @@ def lattice_search(
         i = int(np.lexsort((b, a, k, cost))[0])
         key = (float(cost[i]), int(k[i]), int(a[i]), int(b[i]))
         best_key = min(best_key, key)
-
-    if n_rot * n_rows * n_cols <= _DENSE_MAX_POSES:
-        # A small lattice (40 Hz: a few cells, a few dozen rotations): every pose scored in
-        # one batch costs less than the tree's levels of small batches, and is the brute force.
-        grid_k, grid_a, grid_b = _dense_lattice(n_rot, n_rows, n_cols)
-        for lo in range(0, grid_k.shape[0], _DENSE_BATCH):
-            hi = lo + _DENSE_BATCH
-            consider(grid_k[lo:hi], grid_a[lo:hi], grid_b[lo:hi])
-        _, k, a, b = best_key
-        return k, a - lat.half_rows, b - lat.half_cols, scored
 
     # The pose at the prediction: a first bound to beat.
     k_pred = int(np.argmin(np.abs(_wrap(lat.thetas_rad - lat.predicted_theta_rad))))

@@ -30,7 +30,7 @@ from service.core.frontend.search import (
     build_pyramid,
     pyramid_of,
 )
-from service.core.types import Pose2D
+from service.core.types import Pose2D, wrap_angle
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -200,6 +200,46 @@ def test_a_grid_without_surfaces_gives_the_priors_optimum() -> None:
     for wall in (None, priors.predicted.theta_rad + 0.01):
         pr = Priors(priors.predicted, priors.cov_pred, wall, 0.01 if wall else math.inf)
         assert search(grid, pts, pr, opts)[0] == _brute_force_search(grid, pts, pr, opts)[0]
+
+
+@pytest.mark.parametrize("seed", range(16))
+def test_a_small_lattice_scored_whole_is_the_brute_force_ties_included(seed: int) -> None:
+    """A lattice small enough is scored whole (`kernels.dense_search`, reading the cost table
+    itself, without the pyramid). On tables of one value (every pose costs the same) or two
+    (the cap and 0: poses with as many points on a surface cost the same), with priors too
+    broad to break the ties, and points partly off the grid: the brute force's pose, its first
+    minimum (lowest rotation, then row, then column), with and without the walls' prior."""
+    rng = np.random.default_rng(seed)
+    grid = LikelihoodGrid(PARAMS.resolution_m, PARAMS.hit_sigma_m)
+    h, w = (int(x) for x in rng.integers(6, 50, size=2))
+    surface = 0.0 if seed % 4 == 1 else rng.uniform(0.02, 0.5)
+    grid.values = (rng.random((h, w)) < surface).astype(np.float32)
+    grid.known = np.zeros((h // 4 + 1, w // 4 + 1), dtype=np.bool_)
+    grid.origin_m = (rng.uniform(-1.0, 1.0), rng.uniform(-1.0, 1.0))
+    res = grid.resolution_m
+    centre = np.array(grid.origin_m) + rng.uniform(-0.2, 1.2, size=2) * (w * res, h * res)
+    pts = rng.normal(0.0, rng.uniform(0.2, 2.0), size=(int(rng.integers(1, 300)), 2))
+    # Broad: the priors' terms (1e-16 × under 0.03 m² or rad²) vanish against any scan cost but
+    # 0 (the least is 50 × the cap / 300 points: its half ulp is 1e-16).
+    broad = np.diag([1e16, 1e16, 1e16]) if seed % 2 else np.diag([1e-2, 4e-2, 1e-3])
+    opts = MatchOptions(
+        search_points=int(rng.choice([7, 50, 200])),
+        search_max_m=float(rng.choice([0.05, 0.1, 0.15])),
+        search_max_rad=math.radians(float(rng.uniform(0.5, 3.0))),
+    )
+    predicted = Pose2D(float(centre[0]), float(centre[1]), float(rng.uniform(-math.pi, math.pi)))
+    for wall in (None, predicted.theta_rad + 0.005):
+        priors = Priors(predicted, broad, wall, 1e8 if wall is not None else math.inf)
+        got, scored = search(grid, pts, priors, opts)
+        want, poses = _brute_force_search(grid, pts, priors, opts)
+        assert poses <= 2048  # scored whole
+        assert (got, scored) == (want, poses)
+        if surface == 0.0:  # every pose ties: the first
+            thetas, ny, nx = _window(grid, _scored_points(pts, opts), priors, opts)
+            first = Pose2D(
+                predicted.x_m - nx * res, predicted.y_m - ny * res, wrap_angle(thetas[0])
+            )
+            assert got == first
 
 
 def test_pyramid_levels_are_the_minimum_over_their_window() -> None:
