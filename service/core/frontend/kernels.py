@@ -252,19 +252,27 @@ def gauss_newton(  # noqa: PLR0917 - numba takes no keyword-only arguments
     max_residual_sigmas: float,
     iterations: int,
     halvings: int,
+    tolerance_m: float,
 ) -> tuple[FloatArray, FloatArray, FloatArray, float, float]:
     """`matcher.refine`'s Gauss-Newton on `_objective` from `start`: (pose, Hessian, its scan
     part, mean field value, cost). A step that raises the cost is halved, at most `halvings`
-    times; the refinement stops at `iterations`, at a step it cannot make pay, or at a step
-    under 10 µm and 1 µrad."""
+    times; the refinement stops at `iterations`, at a step it cannot make pay, or when the next
+    step would move no point by more than `tolerance_m` (converged: near the optimum the
+    bicubic field's rounding decides whether a step that small pays, and trying it and its
+    halvings cost more evaluations than the rest of the refinement)."""
     pose = start.copy()
     cost, g, h, h_scan, score = _objective(
         values, origin_x, origin_y, res, pts, pose, predicted, info_pred, wall_heading_rad,
         wall_sigma_rad, wall_huber, scan_weight, max_residual_sigmas,
     )  # fmt: skip
+    reach_m = 0.0
+    for k in range(pts.shape[0]):
+        reach_m = max(reach_m, math.hypot(pts[k, 0], pts[k, 1]))
     damped = np.eye(3) * 1e-9
     for _ in range(iterations):
         step = -_solve3(h + damped, g)
+        if abs(step[0]) + abs(step[1]) + reach_m * abs(step[2]) <= tolerance_m:
+            break
         accepted = False
         for _half in range(halvings):
             cand = np.array([pose[0] + step[0], pose[1] + step[1], _wrap(pose[2] + step[2])])
@@ -277,7 +285,7 @@ def gauss_newton(  # noqa: PLR0917 - numba takes no keyword-only arguments
                 accepted = True
                 break
             step *= 0.5
-        if not accepted or (abs(step[0]) + abs(step[1]) < 1e-5 and abs(step[2]) < 1e-6):
+        if not accepted:
             break
     return pose, h, h_scan, score, cost
 

@@ -56,6 +56,26 @@ def test_a_shifted_scan_is_recovered_against_its_own_submap(
     assert abs(math.degrees(result.pose.theta_rad - truth.theta_rad)) < 0.1
 
 
+def test_the_refinement_stops_where_no_point_would_move_more_than_its_tolerance() -> None:
+    """From 3 cm and 1° off, the default tolerance (0.5 mm) ends within 1 mm and 0.005° of
+    running every step it can make pay (tolerance 0); a tolerance wider than the first step
+    (at the farthest point) stops before it: the start pose, unmoved."""
+    rng = np.random.default_rng(5)
+    truth = Pose2D(3.0, 2.5, 0.3)
+    scan = scan_of(ROOM, truth, rng)
+    grid = grid_of([(scan, truth)])
+    pts = matched_points(scan)
+    start = Pose2D(truth.x_m + 0.03, truth.y_m - 0.02, truth.theta_rad + math.radians(1.0))
+    priors = Priors(start, np.diag([0.1**2, 0.1**2, math.radians(3.0) ** 2]))
+    exhaustive = refine(grid, pts, start, priors, MatchOptions(refine_tolerance_m=0.0))[0]
+    default = refine(grid, pts, start, priors, MatchOptions())[0]
+    assert math.hypot(default.x_m - exhaustive.x_m, default.y_m - exhaustive.y_m) < 1e-3
+    assert abs(math.degrees(default.theta_rad - exhaustive.theta_rad)) < 0.005
+    assert math.hypot(default.x_m - truth.x_m, default.y_m - truth.y_m) < 0.01
+    unmoved = refine(grid, pts, start, priors, MatchOptions(refine_tolerance_m=10.0))[0]
+    assert unmoved == start
+
+
 def test_a_prediction_far_off_is_recovered_by_the_broad_component() -> None:
     """A stale scan or a lying stamp puts the prediction 40° and 0.4 m off with a tight σ: the
     narrow match cannot reach the truth, costs more than `broad_cost`, and the broad window
