@@ -8,7 +8,7 @@ in numpy's pairwise order addition for addition (`_pairwise_plan`). No fastmath:
 neither reorders nor fuses (a·b + c stays two roundings).
 
 The refinement (`gauss_newton`) is the exception: the whole Gauss-Newton loop runs here, the
-scan's sums in one pass over its points, because the dozen evaluations a scan costs were
+scan's sums in one pass over its points, because the evaluations a scan costs were
 mostly numpy's per-call overhead. Its sums are sequential and its log is libm's, so its poses
 differ from a numpy refinement's in the last bits (measured: 1e-14 m over 2,000 ACES scans).
 """
