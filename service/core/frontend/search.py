@@ -292,16 +292,7 @@ class _Problem:
         scan = lat.scan_weight * looked_up.mean(axis=1, dtype=np.float64)
         info = lat.info_pred
         dx, dy = dj * res, di * res
-        dt = self.dt[k]
-        prior = (
-            info[0, 0] * dx * dx
-            + info[1, 1] * dy * dy
-            + info[2, 2] * dt * dt
-            + 2.0 * info[0, 1] * dx * dy
-            + 2.0 * info[0, 2] * dx * dt
-            + 2.0 * info[1, 2] * dy * dt
-        )
-        total: FloatArray = scan + prior
+        total: FloatArray = scan + kernels.prior_cost(info, dx, dy, self.dt[k])
         if self.has_wall:
             total = total + self.wall_cost[k]
         return total

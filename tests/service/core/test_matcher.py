@@ -453,7 +453,8 @@ def test_warm_up_loads_every_compiled_kernel() -> None:
     """The service calls `warm_up` at start so that a robot's first scan does not wait on numba:
     every kernel the matcher uses, and the map's ray casting, has a compiled signature after it."""
     warm_up()
-    for name in ("gauss_newton", "dense_search", "lattice_gather", "block_bounds", "carve"):
+    kernels_used = ("gauss_newton", "dense_search", "lattice_gather", "block_bounds", "prior_cost")
+    for name in (*kernels_used, "carve"):
         assert getattr(kernels, name).signatures, name
     assert kernels.soft_histograms.signatures
     assert kernels.hard_counts.signatures
