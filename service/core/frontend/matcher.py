@@ -212,7 +212,7 @@ def _brute_force_search(
     thetas, ny, nx = _window(grid, pts, priors, opts)
     dj = np.arange(-nx, nx + 1)
     di = np.arange(-ny, ny + 1)
-    info_pred = np.linalg.inv(priors.cov_pred)
+    info_pred = priors.info_pred
     px, py = priors.predicted.x_m, priors.predicted.y_m
     best = (math.inf, priors.predicted)
     c, s = np.cos(thetas), np.sin(thetas)

@@ -217,6 +217,17 @@ def _huber(z: FloatArray, huber: float) -> FloatArray:
     return out
 
 
+def _rotation_terms(lat: Lattice) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per rotation of the lattice, once: its offset from the prediction, and from the walls'
+    heading (σ) with the walls' cost there; the last two empty without the walls' prior
+    (elementwise, so the same bits as computed pose by pose)."""
+    dt = _wrap(lat.thetas_rad - lat.predicted_theta_rad)
+    if lat.wall_heading_rad is None or not math.isfinite(lat.wall_sigma_rad):
+        return dt, np.zeros(0), np.zeros(0)
+    wall_z = _wrap(lat.thetas_rad - lat.wall_heading_rad) / lat.wall_sigma_rad
+    return dt, wall_z, _huber(wall_z, lat.wall_huber)
+
+
 class _Problem:
     """One search: the points, the lattice, the table, and the two ways to score."""
 
@@ -236,16 +247,8 @@ class _Problem:
         self.cells = np.empty((self.n_rot, 2, self.px.shape[0]), dtype=np.int64)
         self.celled = np.zeros(self.n_rot, dtype=np.bool_)
         self.n_rows, self.n_cols = 2 * lat.half_rows + 1, 2 * lat.half_cols + 1
-        self.has_wall = lat.wall_heading_rad is not None and math.isfinite(lat.wall_sigma_rad)
-        # Per rotation, once: its offset from the prediction, and from the walls' heading (σ)
-        # with the wall cost there (elementwise, so the same bits as computed pose by pose).
-        self.dt = _wrap(lat.thetas_rad - lat.predicted_theta_rad)
-        self.wall_z = np.zeros(0)
-        self.wall_cost = np.zeros(0)
-        if self.has_wall:
-            assert lat.wall_heading_rad is not None
-            self.wall_z = _wrap(lat.thetas_rad - lat.wall_heading_rad) / lat.wall_sigma_rad
-            self.wall_cost = _huber(self.wall_z, lat.wall_huber)
+        self.dt, self.wall_z, self.wall_cost = _rotation_terms(lat)
+        self.has_wall = self.wall_cost.shape[0] > 0
         self.pts = np.ascontiguousarray(pts)
         self.pyramid_shape = np.array(
             [pyramid.row0, pyramid.col0, pyramid.height, pyramid.width, pyramid.max_level]
@@ -336,20 +339,14 @@ def _dense_search(
     table's border and the crop's edge both cost the cap, and the crop holds every cell that
     does not), so the pyramid is neither built nor updated here (the next tree search on the
     submap updates it over the inserts since, or rebuilds it: the same values). The rotations'
-    cos and sin, their offsets from the prediction and the walls' cost are numpy's, as
-    `_Problem`'s."""
+    cos and sin and `_rotation_terms` are numpy's, as `_Problem`'s."""
     thetas = lat.thetas_rad
-    wall_cost = np.zeros(0)
-    if lat.wall_heading_rad is not None and math.isfinite(lat.wall_sigma_rad):
-        wall_cost = _huber(
-            _wrap(thetas - lat.wall_heading_rad) / lat.wall_sigma_rad, lat.wall_huber
-        )
+    dt, _, wall_cost = _rotation_terms(lat)
     k, a, b, scored = kernels.dense_search(
         costs, np.ascontiguousarray(pts[:, 0]), np.ascontiguousarray(pts[:, 1]),
         np.cos(thetas), np.sin(thetas), lat.half_rows, lat.half_cols,
         lat.predicted_xy_m[0], lat.predicted_xy_m[1], grid.origin_m[0], grid.origin_m[1],
-        grid.resolution_m, lat.scan_weight, lat.info_pred,
-        _wrap(thetas - lat.predicted_theta_rad), wall_cost,
+        grid.resolution_m, lat.scan_weight, lat.info_pred, dt, wall_cost,
     )  # fmt: skip
     return k, a - lat.half_rows, b - lat.half_cols, scored
 
