@@ -331,8 +331,9 @@ def map_shares(
     free_px = view.css(beside)
     free_px = free_px[usable(free_px)]
     # Wall cells are 5 cm: a wall hit counts when a dark pixel lies within 8 cm (or 2 px), for
-    # the estimator's error. The building is registered on the served map, not on this canvas:
-    # so the best shift of the canvas within ±MAX_SHIFT_M is searched first, and reported.
+    # the estimator's error. The building was placed by registering it on the served map (one
+    # unknown: the time); what the map drawn on the canvas may still be off by, the best shift
+    # within ±MAX_SHIFT_M, is searched first, and reported.
     radius = max(2, math.ceil(0.08 * view.scale * view.dpr))
     reach = math.ceil(MAX_SHIFT_M * view.scale)
     best = (-1, 0, 0, 0)  # (wall hits, -squared shift: the smallest shift wins ties, sx, sy)
