@@ -312,6 +312,29 @@ def prior_cost(info: FloatArray, dx: Any, dy: Any, dt: Any) -> Any:
 
 
 @_jit
+def _rotated_cells(  # noqa: PLR0917 - numba takes no keyword-only arguments
+    px: FloatArray,
+    py: FloatArray,
+    c: float,
+    s: float,
+    tx: float,
+    ty: float,
+    origin_x: float,
+    origin_y: float,
+    res: float,
+    rows: IntArray,
+    cols: IntArray,
+) -> None:
+    """The cells (row, column) of the points rotated by (c, s) and moved to (tx, ty), into
+    `rows` and `cols`: one rounding for the tree's lookups and the small lattice's alike."""
+    for i in range(px.shape[0]):
+        mx = c * px[i] - s * py[i] + tx
+        my = s * px[i] + c * py[i] + ty
+        rows[i] = int(np.rint((my - origin_y) / res - 0.5))
+        cols[i] = int(np.rint((mx - origin_x) / res - 0.5))
+
+
+@_jit
 def lattice_gather(  # noqa: PLR0917 - numba takes no keyword-only arguments
     flat: F32Array,
     row0: int,
@@ -345,13 +368,10 @@ def lattice_gather(  # noqa: PLR0917 - numba takes no keyword-only arguments
     for m in range(m_n):
         kk = k[m]
         if not celled[kk]:
-            c = cos_t[kk]
-            s = sin_t[kk]
-            for i in range(n):
-                mx = c * px[i] - s * py[i] + tx
-                my = s * px[i] + c * py[i] + ty
-                cells[kk, 0, i] = int(np.rint((my - origin_y) / res - 0.5))
-                cells[kk, 1, i] = int(np.rint((mx - origin_x) / res - 0.5))
+            _rotated_cells(
+                px, py, cos_t[kk], sin_t[kk], tx, ty, origin_x, origin_y, res,
+                cells[kk, 0], cells[kk, 1],
+            )  # fmt: skip
             celled[kk] = True
         dr = di[m] - row0
         dc = dj[m] - col0
@@ -510,13 +530,7 @@ def dense_search(  # noqa: PLR0917 - numba takes no keyword-only arguments
     best = math.inf
     best_k, best_a, best_b = n_rot, n_rows, n_cols
     for k in range(n_rot):
-        c = cos_t[k]
-        s = sin_t[k]
-        for i in range(n):  # `lattice_gather`'s cells
-            mx = c * px[i] - s * py[i] + tx
-            my = s * px[i] + c * py[i] + ty
-            rows0[i] = int(np.rint((my - origin_y) / res - 0.5))
-            cols0[i] = int(np.rint((mx - origin_x) / res - 0.5))
+        _rotated_cells(px, py, cos_t[k], sin_t[k], tx, ty, origin_x, origin_y, res, rows0, cols0)
         for b in range(n_cols):
             for i in range(n):
                 cols[b, i] = np.uint64(_clamp(cols0[i] + (b - half_cols), 0, w - 1))

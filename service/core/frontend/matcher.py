@@ -221,24 +221,15 @@ def _brute_force_search(
     my = s[:, None] * pts[None, :, 0] + c[:, None] * pts[None, :, 1] + py
     rows0 = np.rint((my - grid.origin_m[1]) / res - 0.5).astype(np.int64)
     cols0 = np.rint((mx - grid.origin_m[0]) / res - 0.5).astype(np.int64)
-    # The motion prior's terms in translation alone, the same for every rotation.
+    # The translation offsets, the same for every rotation.
     dx = dj[None, :] * res + np.zeros((di.shape[0], 1))
     dy = di[:, None] * res + np.zeros((1, dj.shape[0]))
-    prior_xx, prior_yy = info_pred[0, 0] * dx * dx, info_pred[1, 1] * dy * dy
-    prior_xy = 2.0 * info_pred[0, 1] * dx * dy
     for k in range(thetas.shape[0]):
         rows = np.clip(rows0[k][None, None, :] + di[:, None, None], 0, h - 1)
         cols = np.clip(cols0[k][None, None, :] + dj[None, :, None], 0, w - 1)
         scan_cost = opts.scan_weight * costs[rows, cols].mean(axis=2, dtype=np.float64)
         dt = wrap_angle(float(thetas[k]) - priors.predicted.theta_rad)
-        prior = (
-            prior_xx
-            + prior_yy
-            + info_pred[2, 2] * dt * dt
-            + prior_xy
-            + 2.0 * info_pred[0, 2] * dx * dt
-            + 2.0 * info_pred[1, 2] * dy * dt
-        )
+        prior = kernels.prior_cost(info_pred, dx, dy, dt)
         total = scan_cost + prior + _wall_cost(priors, float(thetas[k]), opts.wall_huber)
         flat = int(np.argmin(total))
         if total.flat[flat] < best[0]:
