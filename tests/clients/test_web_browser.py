@@ -211,11 +211,14 @@ class ServedMap:
         self.image = read_pgm(pgm)
         self.resolution_m, self.origin_x_m, self.origin_y_m = parse_map_yaml(yaml_text)
         occupied = self.image < 50  # map_server: 0 occupied, 254 free, 205 unknown
-        # Within one cell: a wall cell is the one its hits fell in, give or take rounding.
+        # Within one cell: a wall cell is the one its hits fell in, give or take rounding (the
+        # 3 x 3 dilation, rows then columns, not wrapping round the image's edges).
         near = occupied.copy()
-        for dy in (-1, 0, 1):
-            for dx in (-1, 0, 1):
-                near |= np.roll(np.roll(occupied, dy, axis=0), dx, axis=1)
+        near[1:] |= occupied[:-1]
+        near[:-1] |= occupied[1:]
+        rows = near.copy()
+        near[:, 1:] |= rows[:, :-1]
+        near[:, :-1] |= rows[:, 1:]
         self.near_occupied = near
 
     @property
